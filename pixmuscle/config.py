@@ -1,0 +1,221 @@
+"""YAML configuration → validated, typed, frozen dataclasses.
+
+Each stage owns its section dataclass (``segment``, ``build_model``, ``coarsen``, ``solve``,
+``report``); :func:`parse_section` validates plain data against such a dataclass from its type
+hints and field metadata, and :func:`load_config` assembles the whole file.
+
+Field metadata understood by the validator:
+
+``range``  (lo, hi) inclusive bounds, either may be None;
+``gt``     strict lower bound;
+``must_exist``  for ``Path`` fields: the file must exist;
+``doc``    one-line description with units (used in error messages and ``pixmuscle config --help``).
+
+Every error is an :class:`~pixmuscle.errors.InputError` naming the key path
+(``solve.activation.to``), what was expected and what was found.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import types
+import typing
+from pathlib import Path
+from typing import Any, Literal, Mapping, Union
+
+import yaml
+
+from .errors import InputError
+
+_MISSING = dataclasses.MISSING
+
+
+def _typename(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if tp is float:
+        return "a number"
+    if tp is int:
+        return "an integer"
+    if tp is bool:
+        return "true or false"
+    if tp is str:
+        return "a string"
+    if tp is Path:
+        return "a file path"
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))
+    if origin in (list, tuple):
+        args = typing.get_args(tp)
+        return f"a list of {_typename(args[0])}" if args else "a list"
+    if origin in (dict, Mapping):
+        return "a mapping"
+    if origin in (Union, types.UnionType):
+        return " or ".join(_typename(a) for a in typing.get_args(tp) if a is not type(None))
+    if dataclasses.is_dataclass(tp):
+        return "a mapping"
+    return getattr(tp, "__name__", str(tp))
+
+
+def _got(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) < 60 else text[:57] + "..."
+
+
+def _coerce(value: Any, tp: Any, where: str, base_dir: Path, meta: Mapping) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if tp is Any:
+        return value
+    if origin in (Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        real = [a for a in args if a is not type(None)]
+        if len(real) == 1:  # Optional[X]: X's own, more specific message
+            return _coerce(value, real[0], where, base_dir, meta)
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(value, a, where, base_dir, meta)
+            except InputError as exc:
+                errors.append(str(exc))
+        raise InputError(f"{where}: expected {_typename(tp)}, got {_got(value)}")
+    if origin is Literal:
+        if value not in args:
+            close = difflib.get_close_matches(str(value), [str(a) for a in args], n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise InputError(f"{where}: expected {_typename(tp)}, got {_got(value)}{hint}")
+        return value
+    if dataclasses.is_dataclass(tp):
+        return parse_section(tp, value, where, base_dir)
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise InputError(f"{where}: expected true or false, got {_got(value)}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(f"{where}: expected an integer, got {_got(value)}")
+        _check_range(value, where, meta)
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise InputError(f"{where}: expected a number, got {_got(value)}")
+        value = float(value)
+        _check_range(value, where, meta)
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise InputError(f"{where}: expected a string, got {_got(value)}")
+        return value
+    if tp is Path:
+        if not isinstance(value, (str, Path)):
+            raise InputError(f"{where}: expected a file path, got {_got(value)}")
+        p = Path(value).expanduser()
+        if not p.is_absolute():
+            p = (base_dir / p).resolve()
+        if meta.get("must_exist") and not p.exists():
+            raise InputError(f"{where}: file not found: {p}")
+        return p
+    if origin in (list, tuple):
+        if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)):
+            raise InputError(f"{where}: expected {_typename(tp)}, got {_got(value)}")
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            if len(value) != len(args):
+                raise InputError(f"{where}: expected a list of {len(args)} items, got {len(value)}")
+            return tuple(_coerce(v, a, f"{where}[{i}]", base_dir, meta) for i, (v, a) in enumerate(zip(value, args)))
+        item = args[0] if args else Any
+        out = [_coerce(v, item, f"{where}[{i}]", base_dir, meta) for i, v in enumerate(value)]
+        return tuple(out) if origin is tuple else out
+    if origin in (dict, Mapping):
+        if not isinstance(value, Mapping):
+            raise InputError(f"{where}: expected a mapping, got {_got(value)}")
+        kt, vt = args if args else (Any, Any)
+        return {
+            _coerce(k, kt, f"{where} key {k!r}", base_dir, {}): _coerce(v, vt, f"{where}.{k}", base_dir, meta)
+            for k, v in value.items()
+        }
+    raise TypeError(f"config field {where}: unsupported type {tp!r}")  # programming error
+
+
+def _check_range(value: float, where: str, meta: Mapping) -> None:
+    lo, hi = meta.get("range", (None, None))
+    gt = meta.get("gt")
+    if gt is not None and not value > gt:
+        raise InputError(f"{where}: expected a value > {gt}, got {value}")
+    if lo is not None and value < lo:
+        raise InputError(f"{where}: expected a value ≥ {lo}, got {value}")
+    if hi is not None and value > hi:
+        raise InputError(f"{where}: expected a value ≤ {hi}, got {value}")
+
+
+def parse_section(cls: type, data: Mapping | None, where: str, base_dir: Path | str = ".") -> Any:
+    """Validate plain data against a dataclass and build it.
+
+    Parameters
+    ----------
+    cls : dataclass type
+        The section schema.
+    data : mapping or None
+        Parsed YAML; ``None`` means all defaults.
+    where : str
+        Key path of this section, used in messages (``"solve"``).
+    base_dir : path
+        Folder that relative paths are resolved against (the config file's folder).
+
+    Raises
+    ------
+    InputError
+        Unknown key (with the closest valid key), missing required key, wrong type or out of range.
+    """
+    base_dir = Path(base_dir)
+    if data is None:
+        data = {}
+    if not isinstance(data, Mapping):
+        raise InputError(f"{where}: expected a mapping of keys, got {_got(data)}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = [k for k in data if k not in fields]
+    if unknown:
+        k = unknown[0]
+        close = difflib.get_close_matches(str(k), list(fields), n=1)
+        hint = f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(fields)}"
+        raise InputError(f"{where}.{k}: unknown key{hint}")
+    kwargs = {}
+    for name, f in fields.items():
+        key = f"{where}.{name}" if where else name
+        if name in data:
+            kwargs[name] = _coerce(data[name], hints[name], key, base_dir, f.metadata)
+        elif f.default is _MISSING and f.default_factory is _MISSING:
+            doc = f.metadata.get("doc")
+            raise InputError(f"{key}: required key is missing" + (f" ({doc})" if doc else ""))
+    try:
+        return cls(**kwargs)
+    except InputError:
+        raise
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{where}: {exc}") from None
+
+
+def read_yaml(path: str | Path) -> dict:
+    """Read a YAML mapping with a clear error for a missing or malformed file."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: config file not found")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise InputError(f"{path}: not valid YAML ({exc})") from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a mapping of sections at the top level")
+    return data
+
+
+def to_plain(obj: Any) -> Any:
+    """Dataclass config → plain data (for YAML dumps and hashing)."""
+    from .store import _plain
+
+    return _plain(obj)

@@ -1,0 +1,119 @@
+"""The pixel-point model: nodes on voxel centres with tissue, muscle and fibre data (paper §4.2).
+
+A :class:`Model` is pure data. It is written to and read from ``model.h5`` (schema
+``pixmuscle.model`` v1, layout in docs/architecture.md) by :func:`save_model` / :func:`load_model`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..store import open_stage, read_strings, write_dataset, write_stage
+
+SCHEMA = "pixmuscle.model"
+VERSION = 1
+
+
+@dataclasses.dataclass
+class Model:
+    """Pixel-point model in the grid-aligned model frame (cm).
+
+    Attributes
+    ----------
+    X : (N, 3) float64
+        Node coordinates (voxel centres), cm.
+    ijk : (N, 3) int32
+        Voxel index of each node in the model grid.
+    tissue : (N,) int8
+        Tissue code (1 muscle, 2 connective tissue, 3 fat), see :mod:`pixmuscle.model.tissues`.
+    muscle_id : (N,) int16
+        1..M for muscle nodes (index into ``muscle_names`` + 1), 0 otherwise.
+    fiber : (N, 3) float64
+        Unit fibre direction in the reference configuration; zero rows where tissue is not muscle.
+    muscle_names : list of str
+        Names of the M muscles.
+    spacing : (3,) float64
+        Cell edge lengths, cm. Every node's integration cell is the box ``X ± spacing/2``.
+    origin : (3,) float64
+        Coordinates of voxel (0, 0, 0), cm.
+    shape : (3,) int
+        Grid shape.
+    rotation : (3, 3) float64
+        Residual rotation from the model frame to the scanner frame (identity for non-oblique scans).
+    sets : dict of str → (n,) int64
+        Named node sets (indices into the node arrays).
+    coarsen_factor : int
+        1 for the fine model, 2 for the paper's coarse model, ...
+    """
+
+    X: np.ndarray
+    ijk: np.ndarray
+    tissue: np.ndarray
+    muscle_id: np.ndarray
+    fiber: np.ndarray
+    muscle_names: list
+    spacing: np.ndarray
+    origin: np.ndarray
+    shape: np.ndarray
+    rotation: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(3))
+    sets: dict = dataclasses.field(default_factory=dict)
+    coarsen_factor: int = 1
+
+    @property
+    def n_nodes(self) -> int:
+        return int(self.X.shape[0])
+
+    @property
+    def cell_volume(self) -> float:
+        """Volume of one integration cell, cm³."""
+        return float(np.prod(self.spacing))
+
+
+def write_model_groups(f: Any, model: Model) -> None:
+    """Write the model's groups (``nodes``, ``muscles``, ``grid``, ``sets``) into an open HDF5 file."""
+    g = f.create_group("nodes")
+    write_dataset(g, "X", model.X.astype(np.float64), units="cm")
+    write_dataset(g, "ijk", model.ijk.astype(np.int32))
+    write_dataset(g, "tissue", model.tissue.astype(np.int8), codes="1 muscle, 2 connective_tissue, 3 fat")
+    write_dataset(g, "muscle_id", model.muscle_id.astype(np.int16))
+    write_dataset(g, "fiber", model.fiber.astype(np.float64), units="1")
+    m = f.create_group("muscles")
+    write_dataset(m, "names", np.array(list(model.muscle_names), dtype=object).astype(str) if model.muscle_names else np.array([], dtype="S1"))
+    gr = f.create_group("grid")
+    write_dataset(gr, "spacing", np.asarray(model.spacing, float), units="cm")
+    write_dataset(gr, "origin", np.asarray(model.origin, float), units="cm")
+    write_dataset(gr, "shape", np.asarray(model.shape, np.int64))
+    write_dataset(gr, "rotation", np.asarray(model.rotation, float))
+    s = f.create_group("sets")
+    for name, idx in model.sets.items():
+        write_dataset(s, name, np.asarray(idx, np.int64))
+    f.attrs["coarsen_factor"] = int(model.coarsen_factor)
+
+
+def read_model_groups(f: Any) -> Model:
+    """Read a :class:`Model` from the groups of an open HDF5 file (model or results file)."""
+    n = f["nodes"]
+    names = read_strings(f["muscles/names"]) if "muscles/names" in f else []
+    return Model(
+        X=n["X"][()], ijk=n["ijk"][()], tissue=n["tissue"][()], muscle_id=n["muscle_id"][()],
+        fiber=n["fiber"][()], muscle_names=names,
+        spacing=f["grid/spacing"][()], origin=f["grid/origin"][()], shape=f["grid/shape"][()],
+        rotation=f["grid/rotation"][()], sets={k: v[()] for k, v in f["sets"].items()},
+        coarsen_factor=int(f.attrs.get("coarsen_factor", 1)),
+    )
+
+
+def save_model(path: str | Path, model: Model, *, config: Any = None, inputs: Sequence[str | Path] = ()) -> Path:
+    """Write ``model.h5`` atomically (schema ``pixmuscle.model`` v1)."""
+    return write_stage(path, schema=SCHEMA, version=VERSION, write=lambda f: write_model_groups(f, model),
+                       config=config, inputs=inputs)
+
+
+def load_model(path: str | Path) -> Model:
+    """Read ``model.h5``; raises SchemaError for another schema or version."""
+    with open_stage(path, schema=SCHEMA, version=VERSION) as f:
+        return read_model_groups(f)

@@ -1,0 +1,10 @@
+"""Reproducing-kernel (RK) approximation: kernels, neighbour search, shape functions (paper §2).
+
+Main entry point: :func:`shape_functions` (paper eq. 7) returning sparse Ψ (P, N) and, on
+request, its exact gradients. :func:`kernel` evaluates a 1-D kernel and its derivative.
+"""
+
+from pixmuscle.rk.kernels import KERNELS, SUPPORT_SHAPES, kernel
+from pixmuscle.rk.shape import shape_functions
+
+__all__ = ["KERNELS", "SUPPORT_SHAPES", "kernel", "shape_functions"]
