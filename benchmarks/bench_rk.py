@@ -32,9 +32,7 @@ TARGET_GB = 4.0
 def pixel_cloud(semi_axes=(36.0, 26.5), n_slices=25, h=H, slice_factor=3.0):
     """Node coordinates (N, 3) in cm of an elliptical mask repeated over slices."""
     ra, rb = semi_axes
-    i, j = np.meshgrid(
-        np.arange(-int(ra) - 1, int(ra) + 2), np.arange(-int(rb) - 1, int(rb) + 2), indexing="ij"
-    )
+    i, j = np.meshgrid(np.arange(-int(ra) - 1, int(ra) + 2), np.arange(-int(rb) - 1, int(rb) + 2), indexing="ij")
     inside = (i / ra) ** 2 + (j / rb) ** 2 <= 1.0
     ij = np.column_stack([i[inside], j[inside]]).astype(float) * h
     k = np.repeat(np.arange(n_slices) * slice_factor * h, ij.shape[0])

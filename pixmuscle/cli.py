@@ -217,7 +217,9 @@ def main() -> None:  # console-script entry point
         app()
     except SystemExit:
         raise
-    except PixmuscleError as exc:  # pragma: no cover - guard covers commands
+    except PixmuscleError as exc:
+        if _STATE["debug"]:
+            raise
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
 

@@ -143,6 +143,4 @@ def window(u, support, kind="cubic", support_shape="box", gradient=False):
         # dz/dx_k = u_k / (z a_k); the product is 0 at z = 0 (u = 0 there)
         ratio = np.divide(dw, z, out=np.zeros_like(z), where=z > 0)
         return phi, ratio[:, None] * u / support
-    raise InputError(
-        f"unknown support_shape {support_shape!r}: expected one of {', '.join(SUPPORT_SHAPES)}"
-    )
+    raise InputError(f"unknown support_shape {support_shape!r}: expected one of {', '.join(SUPPORT_SHAPES)}")

@@ -105,9 +105,7 @@ def shape_functions(
     nodes, points, a, per_node = _check_inputs(nodes, points, support)
     check_kernel(kernel)
     if support_shape not in SUPPORT_SHAPES:
-        raise InputError(
-            f"unknown support_shape {support_shape!r}: expected one of {', '.join(SUPPORT_SHAPES)}"
-        )
+        raise InputError(f"unknown support_shape {support_shape!r}: expected one of {', '.join(SUPPORT_SHAPES)}")
     if isinstance(order, (bool, np.bool_)) or order not in (0, 1, 2):
         raise InputError(f"RK basis order must be 0, 1 or 2, got {order!r}")
     order = int(order)
@@ -116,9 +114,7 @@ def shape_functions(
     n_points = points.shape[0]
     alphas = exponents(dim, order)
     g0 = derivative_matrices(alphas)[:, :, 0]  # (d, m): G_k H(0)
-    search = NodeSearch(
-        nodes, a.max(axis=0) if per_node else a, np.inf if support_shape == "box" else 2.0
-    )
+    search = NodeSearch(nodes, a.max(axis=0) if per_node else a, np.inf if support_shape == "box" else 2.0)
 
     counts = np.zeros(n_points, dtype=np.int64)
     cols_parts, psi_parts, dpsi_parts, bad_parts = [], [], [], []
@@ -126,8 +122,17 @@ def shape_functions(
     while start < n_points:
         stop = min(n_points, start + block)
         out = _block(
-            points[start:stop], nodes, a, per_node, search, kernel, support_shape,
-            alphas, g0, gradient, compute=not bad_parts,
+            points[start:stop],
+            nodes,
+            a,
+            per_node,
+            search,
+            kernel,
+            support_shape,
+            alphas,
+            g0,
+            gradient,
+            compute=not bad_parts,
         )
         if out["bad"].size:
             bad_parts.append(out["bad"] + start)
@@ -154,8 +159,7 @@ def shape_functions(
     if not gradient:
         return psi
     dpsi = [
-        _csr(_concat([part[k] for part in dpsi_parts], float), indices.copy(), indptr.copy(), shape)
-        for k in range(dim)
+        _csr(_concat([part[k] for part in dpsi_parts], float), indices.copy(), indptr.copy(), shape) for k in range(dim)
     ]
     return psi, dpsi
 
@@ -244,9 +248,7 @@ def _csr(data, indices, indptr, shape):
 
 
 def _raise_bad_points(bad, points, n_points, dim, order, m):
-    shown = ", ".join(
-        "(" + ", ".join(f"{c:.6g}" for c in points[i]) + ")" for i in bad[:5]
-    )
+    shown = ", ".join("(" + ", ".join(f"{c:.6g}" for c in points[i]) + ")" for i in bad[:5])
     more = " ..." if bad.size > 5 else ""
     raise InputError(
         f"RK shape functions: {bad.size} of {n_points} evaluation points have a singular or "
@@ -264,9 +266,7 @@ def _as_coords(arr, name, dim=None):
     if arr.ndim != 2 or arr.shape[1] not in (1, 2, 3):
         raise InputError(f"RK {name} must have shape (n, d) with d = 1, 2 or 3, got {arr.shape}")
     if dim is not None and arr.shape[1] != dim:
-        raise InputError(
-            f"RK {name} have dimension {arr.shape[1]} but the nodes have dimension {dim}"
-        )
+        raise InputError(f"RK {name} have dimension {arr.shape[1]} but the nodes have dimension {dim}")
     nonfinite = ~np.isfinite(arr).all(axis=1)
     if nonfinite.any():
         first = int(np.flatnonzero(nonfinite)[0])

@@ -79,9 +79,9 @@ def convergence_table(kernels=KERNELS, orders=(1, 2), n_elements=N_ELEMENTS):
     rows = []
     for order in orders:
         for kernel in kernels:
-            hs, errs = zip(*(sine_l2_error(n, kernel, order) for n in n_elements))
+            hs, errs = zip(*(sine_l2_error(n, kernel, order) for n in n_elements), strict=True)
             fitted = observed_rate(hs, errs)
-            for i, (h, err) in enumerate(zip(hs, errs)):
+            for i, (h, err) in enumerate(zip(hs, errs, strict=True)):
                 rate = None if i == 0 else float(np.log(errs[i - 1] / err) / np.log(hs[i - 1] / h))
                 rows.append(
                     {
@@ -116,9 +116,7 @@ def material_transition(a_over_h=TRANSITION_SUPPORT_RATIOS, h=TRANSITION_SPACING
     lo = E_RIGHT + 0.01 * (E_LEFT - E_RIGHT)
     hi = E_LEFT - 0.01 * (E_LEFT - E_RIGHT)
     for ratio in a_over_h:
-        psi, (dpsi,) = shape_functions(
-            nodes[:, None], xs[:, None], ratio * h, kernel="cubic", order=1, gradient=True
-        )
+        psi, (dpsi,) = shape_functions(nodes[:, None], xs[:, None], ratio * h, kernel="cubic", order=1, gradient=True)
         e = psi @ e_nodes
         out["E_rk"][ratio] = e
         out["width"][ratio] = float(step * np.count_nonzero((e > lo) & (e < hi)))
@@ -153,9 +151,9 @@ def _print_table(rows, console):
         return
     widths = [max(len(h), *(len(line[i]) for line in lines)) for i, h in enumerate(header)]
     print("RK convergence, u = sin x on [0, 10] (paper Fig. 3)")
-    print("  ".join(h.rjust(w) for h, w in zip(header, widths)))
+    print("  ".join(h.rjust(w) for h, w in zip(header, widths, strict=True)))
     for line in lines:
-        print("  ".join(c.rjust(w) for c, w in zip(line, widths)))
+        print("  ".join(c.rjust(w) for c, w in zip(line, widths, strict=True)))
 
 
 def _plot_convergence(rows, path):
@@ -163,10 +161,11 @@ def _plot_convergence(rows, path):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     orders = sorted({r["order"] for r in rows})
     fig, axes = plt.subplots(1, len(orders), figsize=(5.5 * len(orders), 4.5), squeeze=False)
-    for ax, order in zip(axes[0], orders):
+    for ax, order in zip(axes[0], orders, strict=True):
         for kernel in dict.fromkeys(r["kernel"] for r in rows if r["order"] == order):
             sel = [r for r in rows if r["order"] == order and r["kernel"] == kernel]
             ax.loglog(
@@ -175,6 +174,9 @@ def _plot_convergence(rows, path):
                 "o-",
                 label=f"{kernel}: rate {sel[0]['fitted_rate']:.2f}",
             )
+        hs = [r["h"] for r in rows if r["order"] == order and r["kernel"] == sel[0]["kernel"]]
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.set_xticks(hs, [f"{h:g}" for h in hs])
         ax.set_xlabel("nodal spacing h")
         ax.set_ylabel("L2 error (eq. 8)")
         ax.set_title(f"n = {order}, a/h = {SUPPORT_RATIO[order]:g}")
