@@ -38,10 +38,10 @@ With W = Ŵ(Ī1, Ī2, Ī4) + U(J), U = K/2 (J − 1)², and W_a = ∂Ŵ/∂Ī_a,
     P = Σ_a W_a ∂Ī_a + U' J H
     A = Σ_ab W_ab ∂Ī_a⊗∂Ī_b + Σ_a W_a ∂²Ī_a + (U''J² + U'J) H⊗H − U'J H⊙H.
 
-Every term is one of four kinds, which is how :func:`_response` evaluates A without building a
-(n,3,3,3,3) temporary per term: dyads Σ_pq c_pq X_p⊗X_q over the basis X = {F, H, FC, a⊗N}
-(one einsum), crossed dyads c_HH H⊙H + c_FF F⊙F (one einsum), δ_ik M_JL and B_ik δ_JL (added
-in place through strided views).
+Every term is one of four kinds: dyads Σ_pq c_pq X_p⊗X_q over the basis X = {F, H, FC, a⊗N},
+crossed dyads c_HH H⊙H + c_FF F⊙F, δ_ik M_JL and c_B B_ik δ_JL. :func:`_response` computes the
+small per-point coefficients (c, c_HH, c_FF, M, c_B) with numpy and a numba kernel writes the 81
+entries of A per point in one pass, so no (n,3,3,3,3) temporary is built per term.
 
 Fibre term (eq. 24): W_fiber(λ̂) is the exact integral from λ̂ = 1 of
 ∂W_fiber/∂λ̂ = (σ_max/λ̂0)(α f_active(λ*) + f_passive(λ*)), λ* = λ̂/λ̂0, in closed form, so energy,
@@ -61,8 +61,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
+import numba
 import numpy as np
 
 from ..errors import InputError, SolverError
@@ -116,15 +118,13 @@ class _Kinematics:
     """F, J, H = F⁻ᵀ, C = FᵀF, I1 for n points; raises SolverError on det F ≤ 0."""
 
     def __init__(self, F):
-        F = np.asarray(F, dtype=np.float64)
+        F = np.ascontiguousarray(F, dtype=np.float64)
         if F.ndim != 3 or F.shape[1:] != (3, 3):
             raise InputError(f"deformation gradient F must have shape (n, 3, 3), got {F.shape}")
         n = F.shape[0]
         finite = np.isfinite(F).all(axis=(1, 2))
         if not finite.all():
-            raise SolverError(
-                f"{int(n - finite.sum())} of {n} material points have a non-finite deformation gradient"
-            )
+            raise SolverError(f"{int(n - finite.sum())} of {n} material points have a non-finite deformation gradient")
         f0, f1, f2 = F[:, :, 0], F[:, :, 1], F[:, :, 2]
         cof = np.empty_like(F)  # cof(F) = J F⁻ᵀ, columns are cross products of F's columns
         cof[:, :, 0] = np.cross(f1, f2)
@@ -141,9 +141,9 @@ class _Kinematics:
         self.F = F
         self.J = J
         self.H = cof / J[:, None, None]
-        self.C = np.einsum("nki,nkj->nij", F, F)
+        self.C = np.matmul(F.transpose(0, 2, 1), F)
         self.I1 = np.einsum("nij,nij->n", F, F)
-        self.j1 = J ** (-2.0 / 3.0)
+        self.j1 = np.cbrt(J) ** -2  # J^(-2/3)
 
     @property
     def I2(self):
@@ -158,7 +158,7 @@ def _response(kin, dW, d2W, Up, Upp, *, use_I2, fib, tangent):
     kin : _Kinematics
     dW : list of (n,) arrays
         ∂Ŵ/∂Ī_a for the isochoric invariants present, in the order Ī1, [Ī2], [Ī4].
-    d2W : (n, m, m) array
+    d2W : (n, m, m) array or None
         ∂²Ŵ/∂Ī_a∂Ī_b in the same order (only used when ``tangent``).
     Up, Upp : (n,) arrays
         U'(J), U''(J) of the volumetric energy.
@@ -172,82 +172,102 @@ def _response(kin, dW, d2W, Up, Upp, *, use_I2, fib, tangent):
     A : (n, 3, 3, 3, 3) or None
     """
     F, H, J, j1, n = kin.F, kin.H, kin.J, kin.j1, kin.n
-    basis = [F, H]
+    nb = 2 + int(use_I2) + int(fib is not None)
+    X = np.empty((n, nb, 3, 3))  # basis {F, H, [FC], [a⊗N]}
+    X[:, 0] = F
+    X[:, 1] = H
     iF, iH = 0, 1
-    invs = []  # (W_a, g_a, dI_a, I_a, m_a, j_a), g_a and dI_a as coefficient vectors over basis
+    I1 = kin.I1
+    invs = [(dW[0], {iF: 2.0}, I1, 1, j1)]  # (W_a, ∂I_a as {basis index: coefficient}, I_a, m_a, j_a)
     if use_I2:
-        FC = np.einsum("nik,nkj->nij", F, kin.C)
-        basis.append(FC)
-        iFC = len(basis) - 1
+        iFC = 2
+        np.matmul(F, kin.C, out=X[:, iFC])
+        invs.append((dW[1], {iF: 2.0 * I1, iFC: -2.0}, kin.I2, 2, j1 * j1))
     if fib is not None:
         a, N, I4 = fib
-        basis.append(a[:, :, None] * N[:, None, :])
-        iaN = len(basis) - 1
-    nb = len(basis)
+        iaN = nb - 1
+        np.multiply(a[:, :, None], N[:, None, :], out=X[:, iaN])
+        invs.append((dW[-1], {iaN: 2.0}, I4, 1, j1))
 
-    def vec(*pairs):
-        v = np.zeros((n, nb))
-        for idx, val in pairs:
-            v[:, idx] = val
-        return v
-
-    I1 = kin.I1
-    invs.append((dW[0], vec((iF, 2.0)), I1, 1, j1))
-    if use_I2:
-        I2 = kin.I2
-        invs.append((dW[1], vec((iF, 2.0 * I1), (iFC, -2.0)), I2, 2, j1 * j1))
-    if fib is not None:
-        invs.append((dW[-1], vec((iaN, 2.0)), I4, 1, j1))
-
-    grads = []
-    s = np.zeros((n, nb))
+    G = np.zeros((n, len(invs), nb))  # coefficients of ∂Ī_a over the basis
+    s = np.zeros((n, nb))  # coefficients of P over the basis
     s[:, iH] = Up * J
-    for Wa, dI, I, m, j in invs:
-        g = j[:, None] * dI
-        g[:, iH] -= (2.0 * m / 3.0) * j * I
-        grads.append(g)
-        s += Wa[:, None] * g
-    X = np.stack(basis, axis=1)  # (n, nb, 3, 3)
-    P = np.einsum("np,npij->nij", s, X)
+    for r, (Wa, dI, I, m, j) in enumerate(invs):
+        for idx, val in dI.items():
+            G[:, r, idx] = j * val
+        G[:, r, iH] -= (2.0 * m / 3.0) * j * I
+        s += Wa[:, None] * G[:, r]
+    Xf = X.reshape(n, nb, 9)
+    P = np.matmul(s[:, None, :], Xf).reshape(n, 3, 3)
     if not tangent:
         return P, None
 
-    G = np.stack(grads, axis=1)  # (n, m, nb)
-    c = np.einsum("nap,nab,nbq->npq", G, d2W, G)
+    c = np.matmul(G.transpose(0, 2, 1), np.matmul(d2W, G))  # Σ_ab W_ab ∂Ī_a⊗∂Ī_b
     c[:, iH, iH] += Upp * J * J + Up * J
     cHH = -Up * J
     M = np.zeros((n, 3, 3))
-    for (Wa, dI, I, m, j) in invs:
+    for Wa, dI, I, m, j in invs:
         wj = Wa * j
         k = 2.0 * m / 3.0
-        c[:, :, iH] -= (k * wj)[:, None] * dI
-        c[:, iH, :] -= (k * wj)[:, None] * dI
+        for idx, val in dI.items():
+            c[:, idx, iH] -= k * wj * val
+            c[:, iH, idx] -= k * wj * val
         c[:, iH, iH] += k * k * wj * I
         cHH = cHH + k * wj * I
     w1 = dW[0] * j1
-    M += (2.0 * w1)[:, None, None] * np.eye(3)
-    cross_X = [H]
-    cross_Y = [cHH[:, None, None] * H]
+    for i in range(3):
+        M[:, i, i] = 2.0 * w1
+    cFF = np.zeros(n)
+    cB = np.zeros(n)
     if use_I2:
         w2 = dW[1] * j1 * j1
         c[:, iF, iF] += 4.0 * w2
-        M += (2.0 * w2 * I1)[:, None, None] * np.eye(3) - (2.0 * w2)[:, None, None] * kin.C
-        cross_X.append(F)
-        cross_Y.append((-2.0 * w2)[:, None, None] * F)
+        M -= (2.0 * w2)[:, None, None] * kin.C
+        for i in range(3):
+            M[:, i, i] += 2.0 * w2 * I1
+        cFF = -2.0 * w2
+        cB = -2.0 * w2
     if fib is not None:
         w4 = dW[-1] * j1
         M += (2.0 * w4)[:, None, None] * (N[:, :, None] * N[:, None, :])
 
-    Y = np.einsum("npq,nqij->npij", c, X)
-    A = np.einsum("npij,npkl->nijkl", X, Y)
-    A += np.einsum("npil,npkj->nijkl", np.stack(cross_X, 1), np.stack(cross_Y, 1))
-    for i in range(3):
-        A[:, i, :, i, :] += M
-    if use_I2:
-        Bw = (-2.0 * w2)[:, None, None] * np.einsum("nik,njk->nij", F, F)
-        for J_ in range(3):
-            A[:, :, J_, :, J_] += Bw
+    A = np.empty((n, 3, 3, 3, 3))
+    _fill_tangent(X, c, H, cHH, F, cFF, M, cB, bool(use_I2), A)
     return P, A
+
+
+@numba.njit(cache=True)
+def _fill_tangent(X, c, H, cHH, F, cFF, M, cB, use_B, out):  # pragma: no cover - compiled
+    """out[e,i,J,k,L] = Σ_pq c_pq X_p,iJ X_q,kL + cHH H_iL H_kJ + cFF F_iL F_kJ
+    + δ_ik M_JL + cB B_ik δ_JL, with B = F Fᵀ (B term only if use_B)."""
+    n, nb = X.shape[0], X.shape[1]
+    Y = np.empty((nb, 3, 3))
+    B = np.zeros((3, 3))
+    for e in range(n):
+        for p in range(nb):
+            for k in range(3):
+                for L in range(3):
+                    acc = 0.0
+                    for q in range(nb):
+                        acc += c[e, p, q] * X[e, q, k, L]
+                    Y[p, k, L] = acc
+        if use_B:
+            for i in range(3):
+                for k in range(3):
+                    B[i, k] = cB[e] * (F[e, i, 0] * F[e, k, 0] + F[e, i, 1] * F[e, k, 1] + F[e, i, 2] * F[e, k, 2])
+        for a in range(9):  # A is major-symmetric: fill the upper triangle of the 9×9 form
+            i, J = a // 3, a % 3
+            for b in range(a, 9):
+                k, L = b // 3, b % 3
+                acc = cHH[e] * H[e, i, L] * H[e, k, J] + cFF[e] * F[e, i, L] * F[e, k, J]
+                for p in range(nb):
+                    acc += X[e, p, i, J] * Y[p, k, L]
+                if i == k:
+                    acc += M[e, J, L]
+                if J == L:
+                    acc += B[i, k]
+                out[e, i, J, k, L] = acc
+                out[e, k, L, i, J] = acc
 
 
 def _cauchy(kin, P):
@@ -259,9 +279,7 @@ def _as_const(obj, names):
     for name in names:
         v = getattr(obj, name)
         if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-            raise InputError(
-                f"{type(obj).__name__}.{name} must be a number (N/cm² or dimensionless), got {v!r}"
-            )
+            raise InputError(f"{type(obj).__name__}.{name} must be a number (N/cm² or dimensionless), got {v!r}")
         if not math.isfinite(float(v)):
             raise InputError(f"{type(obj).__name__}.{name} must be finite, got {v!r}")
         object.__setattr__(obj, name, float(v))
@@ -352,24 +370,32 @@ FAT = CubicIsotropic(C10=3.0, C20=8.0, C30=80.0, K=5000.0)
 # --------------------------------------------------------------------------------------------
 # fibre force–length relations (eqs. 25, 26 with the ERRATA)
 
-# ∫_0^s f_active at the branch ends 0.6, 1.4, 1.6
-_FA06 = 3.0 * 0.2**3
-_FA14 = _FA06 + 0.8 + (4.0 / 3.0) * ((-0.4) ** 3 - 0.4**3)
-_FA16 = _FA14 + 3.0 * 0.2**3
+# f_active is piecewise quadratic: on piece k, with t = s − s_ref,
+#   f = p0 + p1 t + p2 t²,  ∫_0^s f = F0 + p0 t + p1 t²/2 + p2 t³/3.
+# Pieces: s < 0.4 | [0.4, 0.6] | (0.6, 1.4] | (1.4, 1.6] | s > 1.6 (ERRATA band: 0 outside).
+_FA06 = 3.0 * 0.2**3  # ∫_0^0.6 f_active
+_FA10 = _FA06 + 0.4 - (4.0 / 3.0) * 0.4**3  # ∫_0^1
+_FA16 = 2.0 * _FA10  # ∫_0^1.6: f_active is symmetric about s = 1
+_ACT_BREAKS = np.array([0.4, 0.6, 1.4, 1.6])
+_ACT_TABLE = np.array(
+    [  # s_ref, F0, p0, p1, p2
+        [0.4, 0.0, 0.0, 0.0, 0.0],
+        [0.4, 0.0, 0.0, 0.0, 9.0],
+        [1.0, _FA10, 1.0, 0.0, -4.0],
+        [1.6, _FA16, 0.0, 0.0, 9.0],
+        [1.6, _FA16, 0.0, 0.0, 0.0],
+    ]
+)
 
 
 def _active_parts(s):
     """∫_0^s f_active, f_active(s), f_active'(s) for normalised stretch s (any shape)."""
     s = np.asarray(s, dtype=np.float64)
-    c = [s < 0.4, s <= 0.6, s <= 1.4, s <= 1.6]
-    u, v, w = s - 0.4, 1.0 - s, s - 1.6
-    F = np.select(
-        c,
-        [0.0, 3.0 * u**3, _FA06 + (s - 0.6) + (4.0 / 3.0) * (v**3 - 0.064), _FA14 + 3.0 * w**3 + 0.024],
-        _FA16,
-    )
-    f = np.select(c, [0.0, 9.0 * u**2, 1.0 - 4.0 * v**2, 9.0 * w**2], 0.0)
-    df = np.select(c, [0.0, 18.0 * u, 8.0 * v, 18.0 * w], 0.0)
+    s_ref, F0, p0, p1, p2 = _ACT_TABLE[np.searchsorted(_ACT_BREAKS, s, side="left")].T
+    t = s - s_ref
+    f = p0 + t * (p1 + t * p2)
+    df = p1 + 2.0 * p2 * t
+    F = F0 + t * (p0 + t * (0.5 * p1 + t * p2 / 3.0))
     return F, f, df
 
 
@@ -425,9 +451,7 @@ def _unit_fibers(fiber, n):
     norm = np.sqrt(np.einsum("ni,ni->n", N, N))
     bad = ~(norm > 1e-12)
     if bad.any():
-        raise InputError(
-            f"{int(bad.sum())} of {n} fibre directions are zero or not finite; expected unit vectors"
-        )
+        raise InputError(f"{int(bad.sum())} of {n} fibre directions are zero or not finite; expected unit vectors")
     return N / norm[:, None]
 
 
@@ -538,8 +562,14 @@ class TransverselyIsotropicMuscle:
         kin, N, alpha, a, I4, lam = self._parts(F, fiber, activation)
         x = kin.j1 * kin.I1 - 3.0
         y = kin.j1**2 * kin.I2 - 3.0
-        Wm = (self.C10 * x + self.C01 * y + self.C20 * x * x + self.C02 * y * y + self.C11 * x * y
-              + 0.5 * self.K * (kin.J - 1.0) ** 2)
+        Wm = (
+            self.C10 * x
+            + self.C01 * y
+            + self.C20 * x * x
+            + self.C02 * y * y
+            + self.C11 * x * y
+            + 0.5 * self.K * (kin.J - 1.0) ** 2
+        )
         return Wm + self._fiber(lam, alpha)[0]
 
     def _eval(self, F, fiber, activation, tangent):
