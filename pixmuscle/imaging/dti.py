@@ -153,3 +153,87 @@ def fiber_features(v, mode: str = "outer") -> np.ndarray:
     if mode == "canonical":
         return canonical_sign(v)
     raise InputError(f"fiber_features: unknown mode {mode!r}; expected 'outer', 'abs' or 'canonical'")
+
+
+def resample_tensor_to_grid(d, d_affine, target_shape, target_affine, order: int = 1):
+    """Map a diffusion-tensor image onto another grid (e.g. the anatomical MRI) via the affines.
+
+    Tensors are interpolated component by component (never eigenvectors, which have no sign
+    and cannot be averaged); linear interpolation of a tensor field that is linear in world
+    position is exact.
+
+    Parameters
+    ----------
+    d : (I, J, K, 3, 3) array_like
+        Symmetric tensors, components in world axes (see module notes).
+    d_affine, target_affine : (4, 4) array_like
+        Voxel index -> world (cm) of the DTI and of the target grid.
+    target_shape : (I', J', K') tuple of int
+    order : int
+        Interpolation order (1: trilinear). Orders > 1 may produce non-positive tensors.
+
+    Returns
+    -------
+    out : (I', J', K', 3, 3) ndarray
+        Tensors on the target grid; zero where not ``covered``.
+    covered : (I', J', K') bool ndarray
+        Target voxels inside the DTI field of view.
+
+    Raises
+    ------
+    InputError
+        If the fields of view do not overlap, or shapes are wrong.
+    """
+    from pixmuscle.imaging.resample import resample_to_grid
+
+    d = np.asarray(d, dtype=float)
+    if d.ndim != 5 or d.shape[3:] != (3, 3):
+        raise InputError(f"DTI tensor image: expected shape (I, J, K, 3, 3), got {d.shape}")
+    comp = components_from_tensor(d, "fsl")
+    out, covered = resample_to_grid(comp, d_affine, target_shape, target_affine, order=order,
+                                    name="DTI tensor image")
+    return tensor_from_components(out, "fsl"), covered
+
+
+def resample_vectors_to_grid(v, v_affine, target_shape, target_affine, order: int = 1,
+                             min_weight: float = 0.5):
+    """Map principal-eigenvector (fibre) images onto another grid, independent of their signs.
+
+    For users who have only the V1 image: each vector is turned into ``v v^T`` (sign-free),
+    these are interpolated, and the principal eigenvector of the result is taken again.
+
+    Parameters
+    ----------
+    v : (I, J, K, 3) array_like
+        Unit vectors in world axes, or zero where there is no DTI data; signs arbitrary.
+    v_affine, target_affine : (4, 4) array_like
+        Voxel index -> world (cm).
+    target_shape : (I', J', K') tuple of int
+    order : int
+        Interpolation order (1: trilinear).
+    min_weight : float
+        A target voxel has data where the interpolated ``trace(v v^T)`` (the share of
+        interpolation weight on voxels with data) is at least this.
+
+    Returns
+    -------
+    out : (I', J', K', 3) ndarray
+        Unit vectors with :func:`canonical_sign`, zero where ``has_data`` is False.
+    has_data : (I', J', K') bool ndarray
+        Inside the source field of view and with enough data (see ``min_weight``).
+    """
+    from pixmuscle.imaging.resample import resample_to_grid
+
+    v = np.asarray(v, dtype=float)
+    if v.ndim != 4 or v.shape[3] != 3:
+        raise InputError(f"fibre vector image: expected shape (I, J, K, 3), got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise InputError(f"fibre vector image: {int(np.sum(~np.isfinite(v)))} non-finite components")
+    comp = fiber_features(v, "outer")
+    out, covered = resample_to_grid(comp, v_affine, target_shape, target_affine, order=order,
+                                    name="fibre vector image")
+    weight = out[..., 0] + out[..., 3] + out[..., 5]
+    has_data = covered & (weight >= min_weight)
+    vec, _, _ = principal_eigenvector(tensor_from_components(out, "fsl"))
+    vec[~has_data] = 0.0
+    return vec, has_data

@@ -48,6 +48,10 @@ class Model:
         Named node sets (indices into the node arrays).
     coarsen_factor : int
         1 for the fine model, 2 for the paper's coarse model, ...
+    bone_ijk : (B, 3) int32 or None
+        Grid indices of the bone voxels (not nodes). Kept so that a coarsened model can recompute
+        ``bone_surface`` on its own grid (:func:`pixmuscle.model.coarsen.coarsen_model`).
+        Stored as ``/grid/bone_ijk`` when present.
     """
 
     X: np.ndarray
@@ -62,6 +66,7 @@ class Model:
     rotation: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(3))
     sets: dict = dataclasses.field(default_factory=dict)
     coarsen_factor: int = 1
+    bone_ijk: np.ndarray | None = None
 
     @property
     def n_nodes(self) -> int:
@@ -88,6 +93,8 @@ def write_model_groups(f: Any, model: Model) -> None:
     write_dataset(gr, "origin", np.asarray(model.origin, float), units="cm")
     write_dataset(gr, "shape", np.asarray(model.shape, np.int64))
     write_dataset(gr, "rotation", np.asarray(model.rotation, float))
+    if model.bone_ijk is not None:
+        write_dataset(gr, "bone_ijk", np.asarray(model.bone_ijk, np.int32).reshape(-1, 3))
     s = f.create_group("sets")
     for name, idx in model.sets.items():
         write_dataset(s, name, np.asarray(idx, np.int64))
@@ -104,6 +111,7 @@ def read_model_groups(f: Any) -> Model:
         spacing=f["grid/spacing"][()], origin=f["grid/origin"][()], shape=f["grid/shape"][()],
         rotation=f["grid/rotation"][()], sets={k: v[()] for k, v in f["sets"].items()},
         coarsen_factor=int(f.attrs.get("coarsen_factor", 1)),
+        bone_ijk=f["grid/bone_ijk"][()] if "grid/bone_ijk" in f else None,
     )
 
 

@@ -30,15 +30,26 @@ class SmoothField:
     k: np.ndarray
     phase: np.ndarray
 
+    def _arg(self, points):
+        p = np.asarray(points, dtype=float)
+        flat = p.reshape(-1, 3)
+        k = self.k
+        arg = (k[:, 0:1] * flat[:, 0] + k[:, 1:2] * flat[:, 1] + k[:, 2:3] * flat[:, 2]
+               + self.phase[:, None])
+        # float32 trigonometry is ~8x faster and ample for a smooth perturbation
+        return arg.astype(np.float32), p.shape[:-1]
+
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """Field values at ``points`` (..., 3) cm; returns (...)."""
-        arg = np.asarray(points, dtype=float) @ self.k.T + self.phase
-        return np.sqrt(2.0 / len(self.phase)) * np.cos(arg).sum(axis=-1)
+        arg, shape = self._arg(points)
+        val = np.cos(arg).sum(axis=0, dtype=np.float64)
+        return np.sqrt(2.0 / len(self.phase)) * val.reshape(shape)
 
     def gradient(self, points: np.ndarray) -> np.ndarray:
         """Gradient (..., 3) in 1/cm at ``points`` (..., 3) cm."""
-        arg = np.asarray(points, dtype=float) @ self.k.T + self.phase
-        return -np.sqrt(2.0 / len(self.phase)) * np.sin(arg) @ self.k
+        arg, shape = self._arg(points)
+        g = -(self.k.T.astype(np.float32) @ np.sin(arg)).T.astype(np.float64)
+        return np.sqrt(2.0 / len(self.phase)) * g.reshape(shape + (3,))
 
 
 def smooth_field(rng: np.random.Generator, length_cm=(2.0, 2.0, 4.0), n_modes: int = 24) -> SmoothField:

@@ -13,12 +13,15 @@ All phantoms are SYNTHETIC: made by this code, not patient data.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from pixmuscle.errors import InputError
+from pixmuscle.imaging.dti import principal_eigenvector, tensor_from_components
+from pixmuscle.synth.noise import random_signs, rician, smooth_field
 
 # Signal classes (how a point looks); several map to the same tissue code.
 BACKGROUND, MUSCLE, CT, FAT, CORTEX, MARROW, SKIN = range(7)
@@ -39,7 +42,7 @@ class Sample(NamedTuple):
     cls : (n,) int8 signal class (BACKGROUND ... SKIN)
     muscle : (n,) int16, 1..M where ``cls == MUSCLE``, else 0
     imat : (n,) bool, intramuscular fat (a subset of ``cls == FAT``)
-    apo : (n,) bool, outer connective-tissue layer (deep fascia / aponeurosis; subset of CT)
+    apo : (n,) bool, connective tissue that is not IMCT: skin and the deep fascia / aponeurosis
     fiber : (n, 3) float unit fibre direction where ``cls == MUSCLE`` (zeros elsewhere), or None
     """
 
@@ -79,9 +82,10 @@ class Phantom:
         Connective tissue as a specialised sequence would show it: ``labels == 2``.
     imat_mask : (I, J, K) bool
         Intramuscular fat (not subcutaneous fat, not marrow); a subset of ``labels == 3``.
-    aponeurosis_mask : (I, J, K) bool
-        The outer connective-tissue layer (deep fascia of the leg; aponeurosis of the MG);
-        a subset of ``imct_mask``. Table 3 of the paper counts IMCT without it.
+    outer_ct_mask : (I, J, K) bool
+        Connective tissue that is not intramuscular: skin, and the deep fascia (leg) or the
+        aponeurosis (MG); a subset of ``imct_mask``. Table 3 of the paper counts IMCT without
+        the aponeurosis: IMCT = ``imct_mask & ~outer_ct_mask``.
     fiber_true : (I, J, K, 3) float64
         True unit fibre direction where ``labels == 1`` (canonical sign, v_z > 0), else 0.
     dti_tensor : (I', J', K', 6) float64
@@ -107,7 +111,7 @@ class Phantom:
     muscle_names: list
     imct_mask: np.ndarray
     imat_mask: np.ndarray
-    aponeurosis_mask: np.ndarray
+    outer_ct_mask: np.ndarray
     fiber_true: np.ndarray
     dti_tensor: np.ndarray
     dti_affine: np.ndarray
@@ -238,3 +242,59 @@ def check_fits(name, lo, hi, affine, shape, what="MRI"):
             f"does not fit the {what} field of view (x {c0[0]:.2f}..{c1[0]:.2f}, "
             f"y {c0[1]:.2f}..{c1[1]:.2f} cm); increase shape or pixel_cm, or make it smaller"
         )
+
+
+def dti_grid(shape, affine, factor, *, fov_fraction=1.0, shift_cm=(0.0, 0.0)):
+    """The DTI grid of a phantom: shape (I', J', K+1) and its affine.
+
+    In-plane voxels ``factor`` times the MRI pixel, in-plane field of view ``fov_fraction``
+    times the MRI's and centred ``shift_cm`` (x, y) away from it; the same slice spacing with
+    slices offset by half a slice, one more slice so that the MRI slices are covered.
+    """
+    spacing = np.diag(affine)[:3]
+    dspacing = np.array([factor * spacing[0], factor * spacing[1], spacing[2]])
+    dshape = (int(np.ceil(fov_fraction * shape[0] / factor)), int(np.ceil(fov_fraction * shape[1] / factor)),
+              shape[2] + 1)
+    centre = affine[:2, 3] + 0.5 * (np.array(shape[:2]) - 1) * spacing[:2] + np.asarray(shift_cm)
+    dorigin = np.r_[centre - 0.5 * (np.array(dshape[:2]) - 1) * dspacing[:2], affine[2, 3] - 0.5 * spacing[2]]
+    return dshape, grid_affine(dspacing, dorigin)
+
+
+def render_phantom(anatomy, shape, affine, dshape, dti_affine, rng, *, noise, dti_noise, ss, ss_z, bias,
+            muscle_contrast, names, params) -> Phantom:
+    """Render MRI (with noise), ground truth and DTI of ``anatomy`` into a :class:`Phantom`.
+
+    Shared by the leg and MG phantoms; ``rng`` continues the phantom's random stream.
+    """
+    m = len(names)
+    offsets = np.zeros(m + 1)
+    if m > 1:
+        offsets[1:] = muscle_contrast * rng.permutation(np.linspace(-1.0, 1.0, m))
+    clean = render_mri(anatomy, shape, affine, ss=ss, ss_z=ss_z, intensity=T1_INTENSITY,
+                       muscle_offset=offsets)
+    centres = voxel_centres(affine, shape)
+    truth = anatomy(centres.reshape(-1, 3), True)
+    if bias > 0:
+        bfield = smooth_field(rng, (8.0, 8.0, 20.0), 6)
+        clean = clean * (1.0 + bias * bfield(centres))
+    mri = rician(clean, noise, rng)
+
+    labels = CLASS_TO_TISSUE[truth.cls].reshape(shape)
+    muscle_id = truth.muscle.reshape(shape).astype(np.int16)
+    fiber_true = truth.fiber.reshape(shape + (3,))
+
+    tensor, dmask = render_dti(anatomy, dshape, dti_affine, ss=ss, ss_z=ss_z)
+    tensor = add_tensor_noise(tensor, dmask, dti_noise, rng)
+    v1, _, _ = principal_eigenvector(tensor_from_components(tensor, "fsl"))
+    v1 = v1 * random_signs(dshape, rng)[..., None]
+    v1[~dmask] = 0.0
+
+    params = dict(params, synthetic=True, noise_sigma=noise,
+                  note="SYNTHETIC phantom generated by pixmuscle.synth; not patient data")
+    return Phantom(
+        mri=mri, affine=affine, labels=labels, muscle_id=muscle_id, muscle_names=list(names),
+        imct_mask=labels == 2, imat_mask=truth.imat.reshape(shape),
+        outer_ct_mask=truth.apo.reshape(shape), fiber_true=fiber_true,
+        dti_tensor=tensor, dti_affine=dti_affine, dti_v1=v1, dti_mask=dmask, noise_sigma=float(noise),
+        params=params,
+    )

@@ -1,0 +1,153 @@
+"""Cohort comparison (paper Example 3, Table 3 and Fig. 15c): volumes and force of several subjects.
+
+The first subject is the reference: every quantity is also given as a ratio to it (Table 3's
+"Old normalized by Young" column).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from . import html as H
+from .curves import plot_force_activation, write_csv
+
+#: (column header, function of a summary) of the quantities compared
+QUANTITIES = (
+    ("muscle [cm^3]", lambda s: s["volumes_cm3"]["muscle"]),
+    ("IMAT [cm^3]", lambda s: s["volumes_cm3"]["imat"]),
+    ("IMCT [cm^3]", lambda s: s["volumes_cm3"]["imct"]),
+    ("subcutaneous fat [cm^3]", lambda s: s["volumes_cm3"]["subcutaneous_fat"]),
+    ("total volume [cm^3]", lambda s: s["volumes_cm3"]["total"]),
+    ("F_max [N]", lambda s: s.get("F_max_N")),
+    ("F_max / total volume [N/cm^3]", lambda s: s.get("force_per_volume_N_per_cm3")),
+    ("F_max / muscle volume [N/cm^3]", lambda s: s.get("force_per_muscle_volume_N_per_cm3")),
+)
+
+
+def resolve_summary(entry: Mapping[str, Any], where: str = "report") -> dict:
+    """The report summary of one cohort entry.
+
+    An entry is either a summary returned by :func:`pixmuscle.stages.report.make_report`, or a
+    pipeline subject summary with ``report`` (path of index.html or of the report folder, next to
+    which ``summary.json`` lies) or ``results`` (results.h5 path, or a mapping model → path whose
+    first entry is used). ``name`` (if present) becomes the label.
+    """
+    if not isinstance(entry, Mapping):
+        raise InputError(f"{where}: expected a mapping (report summary or pipeline summary), got {type(entry).__name__}")
+    if "volumes_cm3" in entry and "F_max_N" in entry:
+        s = dict(entry)
+    elif entry.get("report"):
+        p = Path(entry["report"])
+        js = p / "summary.json" if p.is_dir() else p.with_name("summary.json")
+        if not js.exists():
+            raise InputError(f"{where}: report summary {js} not found (run the report stage first)")
+        s = json.loads(js.read_text())
+    elif entry.get("results"):
+        from ..stages.report import summarize_results
+
+        res = entry["results"]
+        path = next(iter(res.values())) if isinstance(res, Mapping) else res
+        s = summarize_results(path, extra={"subject": entry.get("name")} if entry.get("name") else None)
+    else:
+        raise InputError(f"{where}: has neither report data (volumes_cm3, F_max_N), nor 'report', nor 'results'")
+    if entry.get("name"):
+        s["label"] = str(entry["name"])
+    return s
+
+
+def _rel(path: str | Path, start: Path) -> str:
+    """Link target relative to the cohort folder (POSIX separators)."""
+    return Path(os.path.relpath(Path(path).resolve(), start.resolve())).as_posix()
+
+
+def _ratio(v, ref):
+    if v is None or ref is None or not np.isfinite(ref) or ref == 0:
+        return None
+    return float(v) / float(ref)
+
+
+def cohort_summary(reports: Sequence[Mapping[str, Any]], outdir: str | Path, *, failures: Sequence[Mapping] | None = None,
+                   dpi: int = 120, title: str = "Cohort comparison") -> Path:
+    """Write ``cohort.csv``, ``cohort_force_activation.png`` and ``cohort.html`` comparing subjects.
+
+    Parameters
+    ----------
+    reports : list of mappings
+        One entry per subject (see :func:`resolve_summary`); the first is the reference.
+    outdir : path-like
+    failures : list of {"name", "error"}, optional
+        Subjects that failed before a report existed; listed on the page.
+
+    Returns
+    -------
+    Path of ``cohort.html``.
+    """
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    failures = list(failures or [])
+    if not reports and not failures:
+        raise InputError("cohort_summary: no subjects given")
+    sums = [resolve_summary(r, f"cohort entry {i}") for i, r in enumerate(reports)]
+    values = [[q(s) for _, q in QUANTITIES] for s in sums]
+    ref = values[0] if values else []
+    header = ["subject", "status"] + [h for h, _ in QUANTITIES] + [f"{h.split(' [')[0]} (ratio to first)" for h, _ in QUANTITIES]
+    rows = []
+    for s, v in zip(sums, values, strict=True):
+        ratios = [_ratio(x, r) for x, r in zip(v, ref, strict=True)]
+        rows.append([s["label"], s["status"]] + v + ratios)
+    csv_rows = [[("" if c is None else repr(float(c)) if isinstance(c, (float, np.floating)) else c) for c in r] for r in rows]
+    write_csv(outdir / "cohort.csv", header, csv_rows)
+
+    curves = {}
+    for s in sums:
+        c = s.get("curve", {})
+        if c.get("alpha") and s.get("force_sets"):
+            f = np.array([np.nan if x is None else x for x in c["end_force_N"]], float)
+            curves[s["label"]] = (np.array(c["alpha"], float), f, np.array(c["converged"], bool))
+    png = None
+    if curves:
+        png = plot_force_activation(curves, outdir / "cohort_force_activation.png", dpi=dpi,
+                                    title="Force vs activation by subject")
+
+    parts = [f"<h1>{H.esc(title)}</h1>"]
+    if any(s.get("synthetic") for s in sums):
+        parts.append('<div class="note"><b>Synthetic inputs.</b> At least one subject was built from synthetic '
+                     "phantom images, not subject MRI/DTI.</div>")
+    if sums:
+        labels = [s["label"] for s in sums]
+        t_head = ["quantity"] + labels + [f"{lab} / {labels[0]}" for lab in labels[1:]]
+        t_rows = []
+        for qi, (h, _) in enumerate(QUANTITIES):
+            vals = [v[qi] for v in values]
+            pct = [(None if (r := _ratio(x, ref[qi])) is None else f"{100 * r:.1f}%") for x in vals[1:]]
+            t_rows.append([H.html_units(h)] + vals + pct)
+        t_rows.append(["status"] + [s["status"] for s in sums] + [""] * (len(labels) - 1))
+        parts.append("<h2>Volumes and force (paper Table 3 layout)</h2>")
+        parts.append(H.table(t_head, t_rows))
+        parts.append('<p class="foot">Volumes = node count × cell volume. F_max = largest end force over converged '
+                     "steps (whole model). Ratios are to the first subject. Per-subject definitions of IMAT/IMCT are in "
+                     "each subject's report. Data: <code>cohort.csv</code>.</p>")
+    if png is not None:
+        parts.append("<h2>Force–activation</h2>")
+        parts.append(H.img_tag(png, "force vs activation by subject"))
+    warn = [(s["label"], w) for s in sums for w in s.get("warnings", [])]
+    if failures or warn:
+        parts.append("<h2>Failures and warnings</h2><ul>")
+        parts += [f'<li class="fail">{H.esc(f.get("name", "?"))}: {H.esc(f.get("error", ""))}</li>' for f in failures]
+        parts += [f"<li>{H.esc(lab)}: {H.esc(w)}</li>" for lab, w in warn]
+        parts.append("</ul>")
+    links = [(s["label"], s.get("outputs", {}).get("index_html")) for s in sums]
+    if any(p for _, p in links):
+        parts.append("<h2>Subject reports</h2><ul>")
+        parts += [f'<li><a href="{H.esc(_rel(p, outdir))}">{H.esc(lab)}</a></li>' for lab, p in links if p]
+        parts.append("</ul>")
+    out = outdir / "cohort.html"
+    out.write_text(H.page(title, parts), encoding="utf-8")
+    return out

@@ -1,0 +1,38 @@
+"""Configuration of the report stage (YAML section ``report``)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import field
+from typing import Literal
+
+from ..errors import InputError
+
+
+@dataclasses.dataclass(frozen=True)
+class ReportConfig:
+    """Which report outputs to write and how.
+
+    The force–activation CSV/PNG, the tissue table and ``summary.json`` are always written;
+    the flags below switch the heavier outputs.
+    """
+
+    vtu: bool = field(default=True, metadata={"doc": "write the ParaView VTU time series (fields/*.vtu + fields.pvd)"})
+    slices: bool = field(default=True, metadata={"doc": "write the slice figures of |u| and max principal stress"})
+    html: bool = field(default=True, metadata={"doc": "write the self-contained index.html"})
+    every_nth_step: int = field(default=1, metadata={"range": (1, None), "doc": "write every n-th converged step to VTU (the last converged step is always written)"})
+    force_sets: list[str] | None = field(default=None, metadata={"doc": "end node sets whose axial reaction is the muscle force (default: z_min and z_max when constrained)"})
+    dpi: int = field(default=120, metadata={"range": (30, 600), "doc": "figure resolution, dots per inch"})
+    vtu_frame: Literal["model", "rotated"] = field(default="model", metadata={"doc": "VTU coordinates: model frame (cm), or with grid/rotation applied about the origin"})
+    vtu_compression: Literal["zlib", "none"] = field(default="zlib", metadata={"doc": "compression of the VTU arrays: zlib (smaller, slower) or none"})
+    slice_position: tuple[float, ...] | None = field(default=None, metadata={"doc": "(x, y, z) point in cm the three slice planes pass through (default: centre of the node cloud)"})
+    slice_step: int | None = field(default=None, metadata={"range": (0, None), "doc": "step shown on the slice figures (default: last converged step)"})
+    arrows: bool = field(default=True, metadata={"doc": "draw in-plane displacement arrows on the displacement slices"})
+    imat_rule: Literal["enclosed", "near_muscle"] = field(default="enclosed", metadata={"doc": "IMAT = fat not connected in its slice to the outside (enclosed), or fat within attach_distance of muscle (near_muscle)"})
+    attach_distance: float = field(default=2.0, metadata={"gt": 0, "doc": "IMAT/IMCT are attributed to the muscle of the nearest muscle node within this many cells (Chebyshev distance in grid cells)"})
+
+    def __post_init__(self):
+        if self.slice_position is not None and len(self.slice_position) != 3:
+            raise InputError(f"report.slice_position: expected 3 numbers (x, y, z) in cm, got {len(self.slice_position)}")
+        if self.force_sets is not None and len(self.force_sets) == 0:
+            raise InputError("report.force_sets: expected at least one set name, or leave it out for the default (z_min, z_max)")

@@ -1,0 +1,128 @@
+"""Stage ``build-model``: labels (NIfTI or segmentation.h5) → ``model.h5``.
+
+Reads the inputs named by :class:`~pixmuscle.model.config.BuildModelConfig`, calls
+:func:`pixmuscle.model.build.model_from_labels` and writes the model (schema ``pixmuscle.model``
+v1) through :func:`pixmuscle.model.model.save_model`.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..model.build import model_from_labels
+from ..model.config import BuildModelConfig
+from ..model.model import save_model
+from ..store import open_stage, read_strings
+
+_LOG = logging.getLogger(__name__)
+
+SEGMENTATION_SCHEMA = "pixmuscle.segmentation"
+SEGMENTATION_VERSION = 1
+
+#: largest difference (cm) between two affines that still counts as the same grid
+AFFINE_ATOL = 1e-4
+
+
+def read_segmentation(path: str | Path) -> dict[str, Any]:
+    """Read the arrays of a ``segmentation.h5`` (schema ``pixmuscle.segmentation`` v1).
+
+    Returns
+    -------
+    dict
+        ``labels`` (I, J, K) int, ``muscle_id`` (I, J, K) int or None, ``muscle_names`` list of
+        str, ``fiber`` (I, J, K, 3) float or None, ``affine`` (4, 4) float (voxel → cm).
+    """
+    path = Path(path)
+    with open_stage(path, schema=SEGMENTATION_SCHEMA, version=SEGMENTATION_VERSION) as f:
+        missing = [k for k in ("labels", "affine") if k not in f]
+        if missing:
+            raise InputError(f"{path}: segmentation file lacks dataset(s) {', '.join('/' + k for k in missing)}")
+        out = {
+            "labels": f["labels"][()],
+            "affine": np.asarray(f["affine"][()], dtype=float),
+            "muscle_id": f["muscle_id"][()] if "muscle_id" in f else None,
+            "muscle_names": read_strings(f["muscle_names"]) if "muscle_names" in f else [],
+            "fiber": f["fiber"][()] if "fiber" in f else None,
+        }
+    if out["affine"].shape != (4, 4):
+        raise InputError(f"{path}: /affine: expected a (4, 4) voxel → cm matrix, got shape {out['affine'].shape}")
+    return out
+
+
+def _same_grid(name: str, path: Path, shape, affine, ref_path: Path, ref_shape, ref_affine) -> None:
+    if tuple(shape[:3]) != tuple(ref_shape[:3]) or not np.allclose(affine, ref_affine, atol=AFFINE_ATOL):
+        raise InputError(
+            f"{name} {path} is not on the label grid of {ref_path}: shape {tuple(shape)} vs {tuple(ref_shape)}, "
+            f"voxel → cm affine {np.round(affine, 4).tolist()} vs {np.round(ref_affine, 4).tolist()}; "
+            "resample it onto the label grid first")
+
+
+def run_build_model(cfg: BuildModelConfig, out_path: str | Path, progress: Any = None) -> Path:
+    """Build ``model.h5`` from the inputs of ``cfg``.
+
+    Parameters
+    ----------
+    cfg : BuildModelConfig
+        Exactly one of ``labels`` / ``segmentation`` must be set.
+    out_path : path
+        Destination ``model.h5``.
+    progress : object with ``.log(msg)``, optional
+        Progress reporter (:func:`pixmuscle.progress.progress`); messages also go to logging.
+
+    Returns
+    -------
+    pathlib.Path
+        ``out_path``.
+    """
+    def say(msg: str) -> None:
+        if progress is not None and hasattr(progress, "log"):
+            progress.log(msg)
+        else:
+            _LOG.info(msg)
+
+    if cfg.labels is not None or cfg.fibers is not None or cfg.masks:
+        from ..imaging.nifti import load_volume
+
+    src = Path(cfg.require_input())
+    inputs = [src]
+    muscle_ids, names, fibers = None, None, None
+    if cfg.segmentation is not None:
+        say(f"reading {src}")
+        seg = read_segmentation(src)
+        labels, affine = seg["labels"], seg["affine"]
+        muscle_ids, names, fibers = seg["muscle_id"], seg["muscle_names"], seg["fiber"]
+        if muscle_ids is not None and muscle_ids.shape != labels.shape:
+            raise InputError(f"{src}: /muscle_id has shape {muscle_ids.shape}, /labels {labels.shape}")
+        if fibers is not None and fibers.shape != (*labels.shape, 3):
+            raise InputError(f"{src}: /fiber has shape {fibers.shape}, expected {(*labels.shape, 3)}")
+    else:
+        say(f"reading {src}")
+        vol = load_volume(src, kind="labels")
+        labels, affine = vol.data, np.asarray(vol.affine, dtype=float)
+    if cfg.fibers is not None:
+        fv = load_volume(cfg.fibers, kind="vectors", components=cfg.fiber_components)
+        if fv.data.ndim != 4 or fv.data.shape[3] != 3:
+            raise InputError(f"fibers {cfg.fibers}: expected a 4-D image with 3 components (I, J, K, 3), "
+                             f"got shape {fv.data.shape}")
+        _same_grid("fibre image", Path(cfg.fibers), fv.data.shape, np.asarray(fv.affine, float), src, labels.shape, affine)
+        fibers = fv.data
+        inputs.append(Path(cfg.fibers))
+    masks = {}
+    for name, p in cfg.masks.items():
+        mv = load_volume(p, kind="labels", allow_empty=True)
+        _same_grid(f"mask '{name}'", Path(p), mv.data.shape, np.asarray(mv.affine, float), src, labels.shape, affine)
+        masks[name] = np.asarray(mv.data) != 0
+        if not masks[name].any():
+            _LOG.warning("mask '%s' (%s) is empty: node set '%s' will be empty", name, p, name)
+        inputs.append(Path(p))
+    model = model_from_labels(
+        labels, affine, tissue_map=cfg.tissue_map, fibers=fibers, muscle_fibers=cfg.muscle_fibers,
+        fiber_fallback=cfg.fiber_fallback, masks=masks, muscle_ids=muscle_ids, muscle_names=names,
+    )
+    say(f"writing {out_path} ({model.n_nodes} nodes)")
+    return save_model(out_path, model, config=cfg, inputs=inputs)

@@ -1,0 +1,34 @@
+"""Stage ``coarsen``: ``model.h5`` → coarse ``model_coarse.h5`` (paper §4.2, Fig. 9b)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from ..model.coarsen import coarsen_model
+from ..model.model import load_model, save_model
+
+
+def run_coarsen(model_path: str | Path, factor: int, out_path: str | Path, config: Any = None) -> Path:
+    """Coarsen a model file by ``factor`` in-plane and write the coarse model.
+
+    Parameters
+    ----------
+    model_path : path
+        Fine ``model.h5`` (schema ``pixmuscle.model`` v1).
+    factor : int
+        In-plane coarsening factor (≥ 1).
+    out_path : path
+        Destination file.
+    config : CoarsenConfig or mapping, optional
+        Stored in the file's ``config`` attribute (default ``{"factor": factor}``).
+
+    Returns
+    -------
+    pathlib.Path
+        ``out_path``.
+    """
+    model = load_model(model_path)
+    coarse = coarsen_model(model, factor)
+    return save_model(out_path, coarse, config=config if config is not None else {"factor": int(factor)},
+                      inputs=[Path(model_path)])

@@ -1,0 +1,351 @@
+"""Tests of the report stage against independent reads of results.h5 and known fixture answers."""
+
+from __future__ import annotations
+
+import csv
+import html
+import json
+import xml.etree.ElementTree as ET
+
+import h5py
+import meshio
+import numpy as np
+import pytest
+from fixtures_results import write_results_fixture
+
+from pixmuscle.config import parse_section
+from pixmuscle.errors import InputError
+from pixmuscle.report import ReportConfig, plot_force_activation, tissue_table
+from pixmuscle.report.cohort import cohort_summary
+from pixmuscle.report.fields import rotate_voigt
+from pixmuscle.report.inputs import load_results
+from pixmuscle.report.slices import plane_image
+from pixmuscle.stages.report import make_report, run_report
+
+
+def _csv(path):
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    return rows[0], rows[1:]
+
+
+def _col(header, rows, name):
+    j = header.index(name)
+    return np.array([float(r[j]) if r[j] != "" else np.nan for r in rows])
+
+
+@pytest.fixture(scope="module")
+def done(tmp_path_factory):
+    d = tmp_path_factory.mktemp("report")
+    truth = write_results_fixture(d / "results.h5", n_steps=4, attrs={"info": '{"linear_solver": "direct-lu"}'})
+    summary = make_report(truth.path, d / "out", ReportConfig(dpi=50), extra={"title": "Phantom leg", "synthetic": True})
+    return truth, summary, d / "out"
+
+
+@pytest.fixture(scope="module")
+def failed(tmp_path_factory):
+    d = tmp_path_factory.mktemp("failed")
+    truth = write_results_fixture(d / "results.h5", n_steps=3, failed=True, newton_layout="compound")
+    index = run_report(truth.path, d / "out", ReportConfig(dpi=40, arrows=False))
+    return truth, index, d / "out"
+
+
+# ------------------------------------------------------------------------------------------ curves
+def test_force_csv_equals_h5(done):
+    truth, summary, out = done
+    header, rows = _csv(out / "force_activation.csv")
+    with h5py.File(truth.path, "r") as f:
+        alpha = f["steps/alpha"][()]
+        lf = f["steps/load_factor"][()]
+        conv = f["steps/converged"][()]
+        R = {k: v[()] for k, v in f["steps/reaction"].items()}
+    np.testing.assert_array_equal(_col(header, rows, "step"), np.arange(alpha.size))
+    np.testing.assert_array_equal(_col(header, rows, "alpha"), alpha)
+    np.testing.assert_array_equal(_col(header, rows, "load_factor"), lf)
+    for s, r in R.items():
+        for c, name in enumerate("xyz"):
+            np.testing.assert_array_equal(_col(header, rows, f"{s}.R{name} [N]"), r[:, c])
+    # axial force = R . n_out: +z at z_max, -z at z_min (docs/architecture.md)
+    np.testing.assert_array_equal(_col(header, rows, "z_max.F [N]"), R["z_max"][:, 2])
+    np.testing.assert_array_equal(_col(header, rows, "z_min.F [N]"), -R["z_min"][:, 2])
+    assert "bone_surface.F [N]" not in header  # not an end set
+    np.testing.assert_allclose(_col(header, rows, "end_force [N]"), 0.5 * (R["z_max"][:, 2] - R["z_min"][:, 2]), rtol=1e-15)
+    np.testing.assert_array_equal(_col(header, rows, "converged").astype(bool), conv)
+    assert header[-1] == "converged"
+    assert summary["force_sets"] == ["z_min", "z_max"]
+    assert summary["F_max_N"] == pytest.approx(truth.f_max, rel=1e-12)
+
+
+def test_force_plot_overlays_curves(tmp_path):
+    import matplotlib.image as mpimg
+
+    a = np.linspace(0, 0.95, 5)
+    p = plot_force_activation({"coarse": (a, 60 * a), "fine": (a, 62 * a, np.array([1, 1, 1, 1, 0], bool))},
+                              tmp_path / "f.png", dpi=40)
+    img = mpimg.imread(p)
+    assert img.ndim == 3 and img.shape[0] > 50
+    with pytest.raises(InputError, match="alpha has shape"):
+        plot_force_activation({"bad": (a, a[:3])}, tmp_path / "g.png")
+
+
+# ------------------------------------------------------------------------------------------ fields
+def test_vtu_series_matches_h5(done):
+    truth, summary, out = done
+    pvd = ET.parse(out / "fields.pvd").getroot()
+    sets = pvd.findall("./Collection/DataSet")
+    with h5py.File(truth.path, "r") as f:
+        alpha = f["steps/alpha"][()]
+        X = f["nodes/X"][()]
+        assert [d.get("file") for d in sets] == [f"fields/step_{s:04d}.vtu" for s in range(alpha.size)]
+        np.testing.assert_array_equal([float(d.get("timestep")) for d in sets], alpha)
+        for s in (0, alpha.size - 1):
+            m = meshio.read(out / f"fields/step_{s:04d}.vtu")
+            n = X.shape[0]
+            np.testing.assert_array_equal(m.points, X)
+            assert m.cells[0].type == "vertex" and m.cells[0].data.shape == (n, 1)
+            pd = m.point_data
+            np.testing.assert_array_equal(pd["displacement"], f["steps/u"][s])
+            np.testing.assert_array_equal(pd["cauchy"], f["steps/cauchy"][s])
+            assert pd["cauchy"].shape == (n, 6)
+            np.testing.assert_array_equal(pd["max_principal_cauchy"], f["steps/max_principal"][s])
+            np.testing.assert_array_equal(pd["fiber_direction"], f["nodes/fiber"][()])
+            np.testing.assert_array_equal(pd["tissue"], f["nodes/tissue"][()])
+            np.testing.assert_array_equal(pd["muscle_id"], f["nodes/muscle_id"][()])
+            np.testing.assert_array_equal(pd["imat"].astype(bool), truth.imat_nodes)
+
+
+def test_rotate_voigt_against_scipy_rotation():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    R = Rotation.from_euler("zyx", [30, -20, 10], degrees=True).as_matrix()
+    A = rng.normal(size=(7, 3, 3))
+    T = A + A.transpose(0, 2, 1)
+    v = np.stack([T[:, 0, 0], T[:, 1, 1], T[:, 2, 2], T[:, 0, 1], T[:, 1, 2], T[:, 0, 2]], -1)
+    w = rotate_voigt(v, R)
+    full = R @ T @ R.T
+    np.testing.assert_allclose(w, np.stack([full[:, 0, 0], full[:, 1, 1], full[:, 2, 2], full[:, 0, 1], full[:, 1, 2], full[:, 0, 2]], -1), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.eigvalsh(full), np.linalg.eigvalsh(T), atol=1e-12)  # invariants
+
+
+def test_rotated_frame_mesh():
+    from scipy.spatial.transform import Rotation
+
+    from pixmuscle.report.fields import step_mesh
+    from pixmuscle.report.inputs import StepFields
+
+    rng = np.random.default_rng(1)
+    R = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix()
+    X, u, fib = rng.normal(size=(5, 3)), rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
+    c = rng.normal(size=(5, 6))
+    fl = StepFields(u=u, cauchy=c, max_principal=rng.normal(size=5))
+    m = step_mesh(X, fl, fiber=fib, tissue=np.ones(5), muscle_id=np.ones(5), rotation=R)
+    np.testing.assert_allclose(m.points, (R @ X.T).T, atol=1e-14)
+    np.testing.assert_allclose(m.point_data["displacement"], (R @ u.T).T, atol=1e-14)
+    np.testing.assert_allclose(m.point_data["fiber_direction"], (R @ fib.T).T, atol=1e-14)
+    np.testing.assert_array_equal(m.point_data["max_principal_cauchy"], fl.max_principal)  # invariant
+
+
+def test_max_principal_recomputed_when_missing(tmp_path):
+    truth = write_results_fixture(tmp_path / "r.h5", n_steps=2, with_max_principal=False)
+    inp = load_results(truth.path)
+    fl = inp.fields(2)
+    with h5py.File(truth.path, "r") as f:
+        c = f["steps/cauchy"][2]
+    T = np.empty((c.shape[0], 3, 3))
+    for (a, b), k in zip([(0, 0), (1, 1), (2, 2), (0, 1), (1, 2), (0, 2)], range(6), strict=True):
+        T[:, a, b] = T[:, b, a] = c[:, k]
+    np.testing.assert_allclose(fl.max_principal, np.linalg.eigvalsh(T)[:, -1], rtol=1e-12, atol=1e-12)
+
+
+def test_plane_image_places_nodes_on_their_voxels(done):
+    truth, _, _ = done
+    with h5py.File(truth.path, "r") as f:
+        ijk = f["nodes/ijk"][()].astype(np.int64)
+    vals = np.arange(ijk.shape[0], dtype=float)
+    k = 2
+    img, lo = plane_image(ijk, vals, axis=2, index=k, haxis=0, vaxis=1)
+    on = np.flatnonzero(ijk[:, 2] == k)
+    assert img.shape == (ijk[:, 1].max() - ijk[:, 1].min() + 1, ijk[:, 0].max() - ijk[:, 0].min() + 1)
+    for n in on[:: max(1, on.size // 25)]:  # a sample of nodes, checked one by one
+        assert img[ijk[n, 1] - lo[1], ijk[n, 0] - lo[0]] == vals[n]
+    assert np.isfinite(img).sum() == on.size  # NaN everywhere else
+
+
+def test_slice_figures_exist(done):
+    _, summary, out = done
+    for name in ("slices_displacement.png", "slices_stress.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert summary["slices"]["step"] == 4
+    # the planes pass through the centre of the node cloud
+    assert summary["slices"]["plane_index_xyz"] == [10, 10, 3]
+
+
+# ------------------------------------------------------------------------------------------ tissues
+def test_tissue_table_volumes(done):
+    truth, summary, out = done
+    header, rows = _csv(out / "tissue_table.csv")
+    by = {r[0]: dict(zip(header, r, strict=True)) for r in rows}
+    with h5py.File(truth.path, "r") as f:
+        cell = float(np.prod(f["grid/spacing"][()]))
+        n = f["nodes/tissue"].shape[0]
+    assert cell == pytest.approx(0.25 * 0.25 * 1.0)
+    for mid, name in ((1, "medial"), (2, "lateral")):
+        r = by[name]
+        assert float(r["muscle [cm^3]"]) == pytest.approx(truth.n_muscle[mid] * cell, rel=1e-12)
+        assert float(r["IMAT [cm^3]"]) == pytest.approx(truth.n_imat[mid] * cell, rel=1e-12)
+        assert int(r["IMAT nodes"]) == truth.n_imat[mid]
+        assert float(r["IMCT [cm^3]"]) == pytest.approx(truth.n_imct.get(mid, 0) * cell, rel=1e-12)
+        assert r["F_max [N]"] == ""  # per-muscle force is not separable
+    na = by["not attributed"]
+    assert int(na["IMCT nodes"]) == truth.n_imct[0]
+    assert int(na["subcutaneous fat nodes"]) == truth.n_subcutaneous
+    tot = by["total"]
+    assert float(tot["total [cm^3]"]) == pytest.approx(n * cell, rel=1e-12)
+    assert int(tot["IMAT nodes"]) == sum(truth.n_imat.values())
+    for h in ("muscle [cm^3]", "IMAT [cm^3]", "IMCT [cm^3]", "subcutaneous fat [cm^3]", "total [cm^3]"):
+        assert sum(float(by[k][h]) for k in ("medial", "lateral", "not attributed")) == pytest.approx(float(tot[h]), rel=1e-12)
+    fmax = float(tot["F_max [N]"])
+    assert fmax == pytest.approx(truth.f_max, rel=1e-12)
+    assert float(tot["F_max / total volume [N/cm^3]"]) == pytest.approx(fmax / (n * cell), rel=1e-12)
+    assert summary["force_per_volume_N_per_cm3"] == pytest.approx(fmax / (n * cell), rel=1e-12)
+
+
+def test_near_muscle_rule_against_brute_force(done):
+    truth, _, _ = done
+    m = load_results(truth.path).model
+    t = tissue_table(m.ijk, m.tissue, m.muscle_id, m.shape, m.spacing, m.muscle_names, rule="near_muscle", attach_distance=2.0)
+    fat = np.flatnonzero(m.tissue == 3)
+    mus = np.flatnonzero(m.tissue == 1)
+    d = np.abs(m.ijk[fat][:, None, :].astype(int) - m.ijk[mus][None, :, :].astype(int)).max(axis=2).min(axis=1)
+    expect = int((d <= 2).sum())
+    total = t["rows"][-1]
+    assert total["IMAT nodes"] == expect
+    assert total["subcutaneous fat nodes"] == fat.size - expect
+    assert expect > sum(truth.n_imat.values())  # the simple rule also counts fat lying against muscle
+
+
+# ------------------------------------------------------------------------------------------ html
+def test_html_page(done):
+    _, summary, out = done
+    text = (out / "index.html").read_text()
+    assert "data:image/png;base64," in text
+    assert text.count("<img") >= 4
+    assert "Phantom leg" in text and "Synthetic inputs" in text
+    assert "complete" in text
+    assert "<script" not in text
+    assert "direct-lu" in text  # other solver attributes are shown
+    assert "activation" in text and "tissue_table.csv" in text
+    saved = json.loads((out / "summary.json").read_text())
+    assert saved["F_max_N"] == summary["F_max_N"]
+    assert saved["newton"]["iterations"] == [0, 4, 4, 4, 4]
+    np.testing.assert_allclose(saved["newton"]["final_residual"][1:], 10.0 ** (1 - 2 ** 4))
+
+
+def test_failed_solve_report(failed):
+    truth, index, out = failed
+    text = index.read_text()
+    assert index.name == "index.html"
+    assert html.escape(truth.status) in text and 'class="fail"' in text
+    header, rows = _csv(out / "force_activation.csv")
+    conv = _col(header, rows, "converged")
+    np.testing.assert_array_equal(conv, [1, 1, 1, 0])
+    # F_max only over converged steps (fixture: the failed step has the largest force)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["failed"] is True
+    assert summary["F_max_N"] == pytest.approx(truth.f_max, rel=1e-12)
+    assert summary["F_max_N"] < _col(header, rows, "end_force [N]")[-1]
+    assert summary["outputs"]["vtu_steps"] == [0, 1, 2]
+    assert any("did not converge" in w for w in summary["warnings"])
+    assert summary["newton"]["iterations"][-1] == 25
+
+
+# ------------------------------------------------------------------------------------------ cohort
+def test_cohort_summary(tmp_path):
+    young = write_results_fixture(tmp_path / "young.h5", n_steps=2, force_scale=68.76)
+    old = write_results_fixture(tmp_path / "old.h5", n_steps=2, force_scale=37.74, shape=(18, 18, 5))
+    cfg = ReportConfig(vtu=False, slices=False, dpi=40)
+    s_young = make_report(young.path, tmp_path / "ry", cfg, extra={"subject": "young"})
+    idx_old = run_report(old.path, tmp_path / "ro", cfg)
+    entries = [s_young, {"name": "old", "report": str(idx_old)}, {"name": "old-again", "results": {"coarse": str(old.path)}}]
+    page = cohort_summary(entries, tmp_path / "cohort", failures=[{"name": "broken", "error": "segmentation failed"}])
+    header, rows = _csv(tmp_path / "cohort" / "cohort.csv")
+    assert [r[0] for r in rows] == ["young", "old", "old-again"]
+    f = _col(header, rows, "F_max [N]")
+    np.testing.assert_allclose(f, [young.f_max, old.f_max, old.f_max], rtol=1e-12)
+    np.testing.assert_allclose(_col(header, rows, "F_max (ratio to first)"), f / f[0], rtol=1e-12)
+    vol = _col(header, rows, "total volume [cm^3]")
+    np.testing.assert_allclose(vol, [young.n_nodes * young.cell_volume, old.n_nodes * old.cell_volume, old.n_nodes * old.cell_volume])
+    np.testing.assert_allclose(_col(header, rows, "F_max / total volume [N/cm^3]"), f / vol, rtol=1e-12)
+    text = page.read_text()
+    assert "broken" in text and "data:image/png;base64," in text and "%" in text
+
+
+# ------------------------------------------------------------------------------------------ errors
+def test_bad_inputs(tmp_path, done):
+    truth, _, _ = done
+    with pytest.raises(InputError, match="force_sets"):
+        make_report(truth.path, tmp_path / "a", ReportConfig(force_sets=["z_top"], vtu=False, slices=False, html=False))
+    with pytest.raises(InputError, match="slice_position"):
+        make_report(truth.path, tmp_path / "b", ReportConfig(vtu=False, slice_position=(1e3, 0.0, 0.0), html=False))
+    with pytest.raises(InputError, match="not found"):
+        run_report(tmp_path / "missing.h5", tmp_path / "c")
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as f:
+        f.attrs["schema"] = "pixmuscle.model"
+        f.attrs["schema_version"] = 1
+    with pytest.raises(InputError, match="pixmuscle.results"):
+        run_report(other, tmp_path / "d")
+    with pytest.raises(InputError, match="every_nth_step"):
+        parse_section(ReportConfig, {"every_nth_stpe": 2}, "report")
+    with pytest.raises(InputError, match="slice_position"):
+        parse_section(ReportConfig, {"slice_position": [1.0, 2.0]}, "report")
+    cfg = parse_section(ReportConfig, {"vtu": False, "force_sets": ["z_max"], "slice_position": [1, 2, 3]}, "report")
+    assert cfg.force_sets == ["z_max"] and cfg.slice_position == (1.0, 2.0, 3.0)
+
+
+# ------------------------------------------------------------------------------------------ solver files
+def test_reads_files_written_by_the_solver_module(tmp_path):
+    """A file written by pixmuscle.mechanics.results.save_results reports with the solver's own R·n_out."""
+    R = pytest.importorskip("pixmuscle.mechanics.results")
+    from fixtures_results import phantom_model
+
+    model, _ = phantom_model()
+    n, s1 = model.n_nodes, 3
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(s1, n, 3, 3))
+    cauchy = np.stack([R.cauchy_voigt(a + np.swapaxes(a, -1, -2)) for a in A])
+    u = 0.01 * rng.normal(size=(s1, n, 3))
+    reaction = {k: rng.normal(size=(s1, 3)) for k in ("z_min", "z_max", "bone_surface")}
+    constrained = {"z_min": np.ones(3, bool), "z_max": np.ones(3, bool), "bone_surface": np.array([1, 1, 0], bool)}
+    rows = 5
+    newton = {c: (np.repeat([1, 2, 3], [2, 2, 1]) if c == "step" else np.array([0, 1, 0, 1, 0]) if c == "iteration"
+                  else rng.uniform(size=rows)) for c in R.NEWTON_COLUMNS}
+    res = R.Results(model=model, alpha=np.array([0.0, 0.3, 0.6]), load_factor=np.array([0.0, 1 / 3, 2 / 3]),
+                    converged=np.ones(s1, bool), iterations=np.array([0, 2, 2]), cutbacks=np.array([0, 1, 0]),
+                    u=u, d=u, reaction=reaction, prescribed={k: np.zeros((s1, 3)) for k in reaction},
+                    constrained=constrained, cauchy=cauchy, max_principal=R.max_principal(cauchy), newton=newton,
+                    status="failed: load step 3 of 3 did not converge after 4 cutbacks", n_steps_planned=3,
+                    info={"linear_solver": "direct"}, sign_convention="R . n_out")
+    path = R.save_results(tmp_path / "results.h5", res, config={"steps": 3})
+    summary = make_report(path, tmp_path / "out", ReportConfig(dpi=40, slices=False))
+    expect = 0.5 * (res.force("z_min") + res.force("z_max"))
+    np.testing.assert_allclose(summary["curve"]["end_force_N"], expect, rtol=1e-14)
+    assert summary["F_max_N"] == pytest.approx(expect.max())
+    assert summary["newton"]["cutbacks"] == [0, 1, 0] and summary["newton"]["n_steps_planned"] == 3
+    assert summary["failed"] and "failed: load step 3" in (tmp_path / "out" / "index.html").read_text()
+    m = meshio.read(tmp_path / "out" / "fields" / "step_0002.vtu")
+    np.testing.assert_array_equal(m.point_data["displacement"], u[2])
+    np.testing.assert_allclose(m.point_data["max_principal_cauchy"], res.max_principal[2])
+
+
+def test_force_sets_follow_constrained_components():
+    from pixmuscle.report.curves import select_force_sets
+
+    r = {k: np.zeros((2, 3)) for k in ("z_min", "z_max", "bone_surface")}
+    assert select_force_sets(r) == ["z_min", "z_max"]
+    assert select_force_sets(r, constrained={"z_min": "xyz", "z_max": "xy"}) == ["z_min"]
+    with pytest.raises(InputError, match="not constrained along z"):
+        select_force_sets(r, ["z_max"], constrained={"z_max": "xy"})
+    with pytest.raises(InputError, match="not an end set"):
+        select_force_sets(r, ["bone_surface"])
