@@ -61,7 +61,7 @@ def initial_level_set(init, shape, spacing=None):
     init : {"checkerboard", "disk", "small disk"} or ndarray
         ``"checkerboard"``: ``prod sin(pi x / 5)``; ``"disk"``: ball of half the smallest extent
         around the centre; ``"small disk"``: half that radius. An array is used as it is
-        (positive = inside).
+        (positive = inside). (:func:`chan_vese` also accepts ``"mean"``.)
     shape : tuple of int
         Spatial shape.
     spacing : sequence of float, optional
@@ -72,6 +72,8 @@ def initial_level_set(init, shape, spacing=None):
     phi : ndarray of float64, shape ``shape``
     """
     if isinstance(init, str):
+        if init == "mean":
+            raise InputError("init='mean' needs the image: use chan_vese(..., init='mean')")
         if init == "checkerboard":
             return checkerboard_level_set(shape, 5.0)
         if init in ("disk", "small disk"):
@@ -115,9 +117,24 @@ def _per_channel(value, n, name):
     return arr
 
 
+def _mean_init(u, mask, lam):
+    # +1 / -1 split at the mean along the first principal axis of the weighted channels
+    m = np.ones(u.shape[1:], bool) if mask is None else mask
+    x = u[:, m] * np.sqrt(lam)[:, None]
+    x = x - x.mean(axis=1, keepdims=True)
+    if x.shape[0] == 1:
+        axis = np.ones(1)
+    else:
+        axis = np.linalg.eigh(x @ x.T)[1][:, -1]
+        axis = axis * np.sign(axis[np.argmax(np.abs(axis))])
+    proj = np.tensordot(axis * np.sqrt(lam), u - (u[:, m].mean(axis=1)).reshape(
+        (-1,) + (1,) * (u.ndim - 1)), axes=1)
+    return np.where(proj > 0, 1.0, -1.0)
+
+
 def chan_vese(image, *, mu=0.25, nu=0.0, lambda1=1.0, lambda2=1.0, dt=0.5, eps=1.0, tol=1e-3,
               max_iter=500, init="checkerboard", reinit_every=0, spacing=None,
-              channel_axis=None, mask=None):
+              channel_axis=None, mask=None, stop="phi", window=5, energy_scale="range"):
     """Two-phase (multichannel) Chan–Vese segmentation.
 
     Parameters
@@ -141,7 +158,9 @@ def chan_vese(image, *, mu=0.25, nu=0.0, lambda1=1.0, lambda2=1.0, dt=0.5, eps=1
     max_iter : int
         Iteration limit.
     init : str or ndarray
-        See :func:`initial_level_set`.
+        See :func:`initial_level_set`; or ``"mean"``: ``+1`` where the image (its first
+        principal component, ``lambda``-weighted, for several channels) is above its mean over
+        ``mask``, ``-1`` elsewhere (a good start for intensity classes; no spatial prior).
     reinit_every : int
         Reinitialise ``phi`` to a signed distance every so many sweeps (0: never).
     spacing : sequence of float, optional
@@ -150,6 +169,15 @@ def chan_vese(image, *, mu=0.25, nu=0.0, lambda1=1.0, lambda2=1.0, dt=0.5, eps=1
         Axis of ``image`` holding the channels; ``None`` for a single-channel image.
     mask : ndarray of bool, optional
         Spatial mask: means and data force only over ``mask``; the result is ``False`` outside.
+    stop : {"phi", "regions"}
+        Stopping test: RMS level-set change (scikit-image's) or fraction of voxels changing
+        side over ``window`` sweeps (see :func:`.levelset.evolve`).
+    window : int
+        Sweeps between region comparisons for ``stop="regions"``.
+    energy_scale : {"range", "variance"} or float
+        Constant the energy is divided by (same minimisers; sets the time scale of ``dt``):
+        ``"range"`` (default) makes one channel on ``[0, 1]`` with ``lambda = 1`` follow
+        scikit-image's ``chan_vese`` exactly; see :func:`.levelset.evolve`.
 
     Returns
     -------
@@ -172,13 +200,16 @@ def chan_vese(image, *, mu=0.25, nu=0.0, lambda1=1.0, lambda2=1.0, dt=0.5, eps=1
         raise InputError(f"max_iter: expected an integer >= 1, got {max_iter!r}")
     lam1 = _per_channel(lambda1, n_ch, "lambda1")
     lam2 = _per_channel(lambda2, n_ch, "lambda2")
-    phi0 = initial_level_set(init, spatial, spacing)
     if mask is not None:
         mask = np.asarray(mask, bool)
         if mask.shape != spatial:
             raise InputError(f"mask: shape {mask.shape}, expected {spatial}")
         if not mask.any():
             raise InputError("mask: empty (no voxel to segment)")
+    if isinstance(init, str) and init == "mean":
+        phi0 = _mean_init(u, mask, 0.5 * (lam1 + lam2))
+    else:
+        phi0 = initial_level_set(init, spatial, spacing)
     if is_2d:
         u = u[:, None]
         phi0 = phi0[None]
@@ -188,7 +219,8 @@ def chan_vese(image, *, mu=0.25, nu=0.0, lambda1=1.0, lambda2=1.0, dt=0.5, eps=1
     area = np.array([0.0, float(nu)])
     phi, c, n_iter, converged = evolve(
         u, phi0[None], lam, area, np.array([float(mu)]), dt=dt, eps=eps, tol=tol,
-        max_iter=int(max_iter), reinit_every=int(reinit_every), spacing=spacing, mask=mask)
+        max_iter=int(max_iter), reinit_every=int(reinit_every), spacing=spacing, mask=mask,
+        stop=stop, window=int(window), energy_scale=energy_scale)
     phi = phi[0, 0] if is_2d else phi[0]
     seg = phi > 0
     if mask is not None:

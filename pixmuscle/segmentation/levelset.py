@@ -24,15 +24,23 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
-from scipy import ndimage as ndi
+
+from pixmuscle.errors import InputError
 
 __all__ = [
     "checkerboard_level_set",
     "disk_level_set",
     "signed_distance",
+    "squared_edt",
     "region_index",
+    "region_means",
     "evolve_step",
+    "evolve",
 ]
+
+_BIG = 1e30
+#: half-width (in units of the smallest spacing) of the band kept exact on reinitialisation
+_REINIT_BAND = 6.0
 
 
 def checkerboard_level_set(shape, square_size=5.0):
@@ -80,37 +88,164 @@ def disk_level_set(shape, center=None, radius=None, spacing=None):
     if center is None:
         center = [(n - 1) / 2.0 for n in shape]
     if radius is None:
-        radius = min((n - 1) / 2.0 * h for n, h in zip(shape, spacing))
-    grids = np.meshgrid(*[(np.arange(n) - c) * h for n, c, h in zip(shape, center, spacing)],
+        radius = min((n - 1) / 2.0 * h for n, h in zip(shape, spacing, strict=True))
+    grids = np.meshgrid(*[(np.arange(n) - c) * h for n, c, h in zip(shape, center, spacing, strict=True)],
                         indexing="ij")
     dist = np.sqrt(sum(g**2 for g in grids))
     return (radius - dist) / radius
 
 
-def signed_distance(inside, spacing=None):
+def signed_distance(inside, spacing=None, band=None):
     """Signed distance function of a binary mask, positive inside.
 
     The zero level lies half a voxel outside the boundary voxels of ``inside``
-    (``+d - 1/2`` inside, ``-(d - 1/2)`` outside, with ``d`` the Euclidean distance transform).
+    (``+d - h/2`` inside, ``-(d - h/2)`` outside, with ``d`` the exact Euclidean distance to the
+    nearest voxel of the other side and ``h`` the smallest spacing). The distance transform is
+    the separable lower-envelope algorithm of Felzenszwalb & Huttenlocher (2012), in numba.
 
     Parameters
     ----------
     inside : ndarray of bool
-        Any number of dimensions.
+        1-, 2- or 3-D.
     spacing : sequence of float, optional
         Voxel size per axis; the distance is in these units.
+    band : float, optional
+        If given, distances are exact up to ``band`` (same units) and ``phi`` is clipped to
+        ``[-band, band]``; points farther than ``band`` from the other side are left out of
+        the lower envelopes, which makes the transform several times faster.
 
     Returns
     -------
     phi : ndarray of float64, same shape
     """
     inside = np.asarray(inside, bool)
+    if inside.ndim not in (1, 2, 3):
+        raise InputError(f"signed_distance: expected a 1-, 2- or 3-D mask, got {inside.ndim}-D")
     if inside.all() or not inside.any():
         return np.where(inside, 1.0, -1.0) * float(max(inside.shape))
-    h = 0.5 * (1.0 if spacing is None else float(np.min(spacing)))
-    d_in = ndi.distance_transform_edt(inside, sampling=spacing)
-    d_out = ndi.distance_transform_edt(~inside, sampling=spacing)
-    return np.where(inside, d_in - h, h - d_out)
+    spacing = np.ones(inside.ndim) if spacing is None else np.asarray(spacing, dtype=float)
+    shape3 = (1,) * (3 - inside.ndim) + inside.shape
+    h2 = np.concatenate([np.ones(3 - inside.ndim), spacing**2])
+    ins = np.ascontiguousarray(inside.reshape(shape3))
+    h = 0.5 * float(np.min(spacing))
+    cap = _BIG if band is None else (float(band) + h) ** 2
+    lim = np.inf if band is None else float(band)
+    return _signed_distance3(ins, h2, cap, h, lim).reshape(inside.shape)
+
+
+@njit(cache=True, error_model="numpy")
+def _signed_distance3(ins, h2, cap, h, lim):
+    nz, ny, nx = ins.shape
+    g_in = np.empty((nz, ny, nx))  # 0 on the outside: distance of inside voxels to it
+    g_out = np.empty((nz, ny, nx))
+    for iz in range(nz):
+        for iy in range(ny):
+            for ix in range(nx):
+                if ins[iz, iy, ix]:
+                    g_in[iz, iy, ix] = _BIG
+                    g_out[iz, iy, ix] = 0.0
+                else:
+                    g_in[iz, iy, ix] = 0.0
+                    g_out[iz, iy, ix] = _BIG
+    _edt3(g_in, h2, cap)
+    _edt3(g_out, h2, cap)
+    for iz in range(nz):
+        for iy in range(ny):
+            for ix in range(nx):
+                if ins[iz, iy, ix]:
+                    d = np.sqrt(g_in[iz, iy, ix]) - h
+                else:
+                    d = h - np.sqrt(g_out[iz, iy, ix])
+                g_in[iz, iy, ix] = min(max(d, -lim), lim)
+    return g_in
+
+
+@njit(cache=True, error_model="numpy")
+def _edt_line(f, h2, v, z, out):
+    # squared distance transform of a sampled function f on a line of spacing sqrt(h2)
+    n = f.shape[0]
+    k = -1
+    for q in range(n):
+        if f[q] >= _BIG:
+            continue
+        fq = f[q] + h2 * q * q
+        s = 0.0
+        while k >= 0:
+            p = v[k]
+            s = (fq - (f[p] + h2 * p * p)) / (2.0 * h2 * (q - p))
+            if s <= z[k]:
+                k -= 1
+            else:
+                break
+        k += 1
+        v[k] = q
+        z[k] = -np.inf if k == 0 else s
+        z[k + 1] = np.inf
+    if k < 0:
+        for q in range(n):
+            out[q] = _BIG
+        return
+    k = 0
+    for q in range(n):
+        while z[k + 1] < q:
+            k += 1
+        p = v[k]
+        out[q] = h2 * (q - p) * (q - p) + f[p]
+
+
+@njit(cache=True, error_model="numpy")
+def _edt3(g, h2, cap):
+    # in place, axis by axis (X, Y, Z), on g (Z, Y, X); values above cap are dropped (_BIG)
+    nz, ny, nx = g.shape
+    n = max(nz, ny, nx)
+    v = np.empty(n, np.int64)
+    z = np.empty(n + 1)
+    line = np.empty(n)
+    out = np.empty(n)
+    for iz in range(nz):
+        for iy in range(ny):
+            for ix in range(nx):
+                line[ix] = g[iz, iy, ix]
+            _edt_line(line[:nx], h2[2], v, z, out[:nx])
+            for ix in range(nx):
+                g[iz, iy, ix] = out[ix] if out[ix] <= cap else _BIG
+    if ny > 1:
+        for iz in range(nz):
+            for ix in range(nx):
+                for iy in range(ny):
+                    line[iy] = g[iz, iy, ix]
+                _edt_line(line[:ny], h2[1], v, z, out[:ny])
+                for iy in range(ny):
+                    g[iz, iy, ix] = out[iy] if out[iy] <= cap else _BIG
+    if nz > 1:
+        for iy in range(ny):
+            for ix in range(nx):
+                for iz in range(nz):
+                    line[iz] = g[iz, iy, ix]
+                _edt_line(line[:nz], h2[0], v, z, out[:nz])
+                for iz in range(nz):
+                    g[iz, iy, ix] = out[iz] if out[iz] <= cap else _BIG
+
+
+def squared_edt(target, h2, cap=None):
+    """Squared Euclidean distance of every voxel to the nearest ``target`` voxel.
+
+    Parameters
+    ----------
+    target : ndarray of bool, shape ``(Z, Y, X)``
+    h2 : array_like, shape ``(3,)``
+        Squared voxel size per axis.
+    cap : float, optional
+        Squared distances above ``cap`` are not computed exactly (they come out ``> cap``).
+
+    Returns
+    -------
+    ndarray of float64, shape ``(Z, Y, X)``; ``1e30`` where there is no target (within
+    ``cap``).
+    """
+    g = np.where(np.asarray(target, bool), 0.0, _BIG)
+    _edt3(g, np.asarray(h2, dtype=np.float64), _BIG if cap is None else float(cap))
+    return g
 
 
 def region_index(phi):
@@ -131,17 +266,76 @@ def region_index(phi):
     return p
 
 
-@njit(cache=True, fastmath=False, boundscheck=False)
-def _kernel(phi, u, c, lam, area, mu, dt, eps, w, mask, out, sums, counts, e):
-    K, nz, ny, nx = phi.shape
-    C = u.shape[0]
-    P = c.shape[0]
+_FM = {"reassoc", "nsz", "contract", "arcp"}
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
+def _update(f0, fxp, fxm, fyp, fym, fzp, fzm, force, mu, dt, eps, wz, wy, wx):
+    # one voxel of the semi-implicit update; an axis with weight 0 drops out exactly
     eta = 1e-16
-    wz, wy, wx = w[0], w[1], w[2]
-    use_z = nz > 1
-    use_y = ny > 1
-    use_x = nx > 1
-    inv_c = 1.0 / C
+    gx2 = 0.25 * wx * (fxp - fxm) ** 2
+    gy2 = 0.25 * wy * (fyp - fym) ** 2
+    gz2 = 0.25 * wz * (fzp - fzm) ** 2
+    c1 = wx / np.sqrt(eta + wx * (fxp - f0) ** 2 + gy2 + gz2)
+    c2 = wx / np.sqrt(eta + wx * (f0 - fxm) ** 2 + gy2 + gz2)
+    c3 = wy / np.sqrt(eta + wy * (fyp - f0) ** 2 + gx2 + gz2)
+    c4 = wy / np.sqrt(eta + wy * (f0 - fym) ** 2 + gx2 + gz2)
+    num = c1 * fxp + c2 * fxm + c3 * fyp + c4 * fym
+    den = c1 + c2 + c3 + c4
+    if wz != 0.0:
+        c5 = wz / np.sqrt(eta + wz * (fzp - f0) ** 2 + gx2 + gy2)
+        c6 = wz / np.sqrt(eta + wz * (f0 - fzm) ** 2 + gx2 + gy2)
+        num += c5 * fzp + c6 * fzm
+        den += c5 + c6
+    a = dt * eps / (eps * eps + f0 * f0)
+    return (f0 + a * (mu * num + force)) / (1.0 + mu * a * den)
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _row_2d(r, n, s, f, o, mu, dt, eps, wy, wx):
+    # rows r (this), n (y+1), s (y-1); x-interior loop is branch-free
+    nx = r.shape[0]
+    change = 0.0
+    for ix in range(1, nx - 1):
+        v = _update(r[ix], r[ix + 1], r[ix - 1], n[ix], s[ix], 0.0, 0.0, f[ix], mu, dt, eps,
+                    0.0, wy, wx)
+        o[ix] = v
+        change += (v - r[ix]) ** 2
+    for ix in (0, nx - 1):
+        xp = min(ix + 1, nx - 1)
+        xm = max(ix - 1, 0)
+        v = _update(r[ix], r[xp], r[xm], n[ix], s[ix], 0.0, 0.0, f[ix], mu, dt, eps,
+                    0.0, wy, wx)
+        o[ix] = v
+        change += (v - r[ix]) ** 2
+    return change
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _row_3d(r, n, s, up, dn, f, o, mu, dt, eps, wz, wy, wx):
+    nx = r.shape[0]
+    change = 0.0
+    for ix in range(1, nx - 1):
+        v = _update(r[ix], r[ix + 1], r[ix - 1], n[ix], s[ix], up[ix], dn[ix], f[ix], mu, dt,
+                    eps, wz, wy, wx)
+        o[ix] = v
+        change += (v - r[ix]) ** 2
+    for ix in (0, nx - 1):
+        xp = min(ix + 1, nx - 1)
+        xm = max(ix - 1, 0)
+        v = _update(r[ix], r[xp], r[xm], n[ix], s[ix], up[ix], dn[ix], f[ix], mu, dt, eps,
+                    wz, wy, wx)
+        o[ix] = v
+        change += (v - r[ix]) ** 2
+    return change
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _stencil(phi, force, out, mu, dt, eps, wz, wy, wx):
+    # semi-implicit curvature update of one level set, phi/force/out (Z, Y, X)
+    nz, ny, nx = phi.shape
+    if nx < 2:
+        raise ValueError("level-set grids need at least 2 voxels along x")
     change = 0.0
     for iz in range(nz):
         zp = min(iz + 1, nz - 1)
@@ -149,72 +343,96 @@ def _kernel(phi, u, c, lam, area, mu, dt, eps, w, mask, out, sums, counts, e):
         for iy in range(ny):
             yp = min(iy + 1, ny - 1)
             ym = max(iy - 1, 0)
-            for ix in range(nx):
-                xp = min(ix + 1, nx - 1)
-                xm = max(ix - 1, 0)
-                inside = mask[iz, iy, ix]
-                p = 0
-                if inside:
-                    for k in range(K):
-                        if phi[k, iz, iy, ix] > 0.0:
-                            p |= 1 << k
-                    for q in range(P):
-                        acc = 0.0
-                        for i in range(C):
-                            d = u[i, iz, iy, ix] - c[q, i]
-                            acc += lam[q, i] * d * d
-                        e[q] = area[q] + acc * inv_c
-                pnew = 0
-                for k in range(K):
-                    f0 = phi[k, iz, iy, ix]
-                    num = 0.0
-                    den = 0.0
-                    gx2 = 0.0
-                    gy2 = 0.0
-                    gz2 = 0.0
-                    fxp = fxm = fyp = fym = fzp = fzm = f0
-                    if use_x:
-                        fxp = phi[k, iz, iy, xp]
-                        fxm = phi[k, iz, iy, xm]
-                        gx2 = 0.25 * wx * (fxp - fxm) ** 2
-                    if use_y:
-                        fyp = phi[k, iz, yp, ix]
-                        fym = phi[k, iz, ym, ix]
-                        gy2 = 0.25 * wy * (fyp - fym) ** 2
-                    if use_z:
-                        fzp = phi[k, zp, iy, ix]
-                        fzm = phi[k, zm, iy, ix]
-                        gz2 = 0.25 * wz * (fzp - fzm) ** 2
-                    if use_x:
-                        c1 = wx / np.sqrt(eta + wx * (fxp - f0) ** 2 + gy2 + gz2)
-                        c2 = wx / np.sqrt(eta + wx * (f0 - fxm) ** 2 + gy2 + gz2)
-                        num += c1 * fxp + c2 * fxm
-                        den += c1 + c2
-                    if use_y:
-                        c3 = wy / np.sqrt(eta + wy * (fyp - f0) ** 2 + gx2 + gz2)
-                        c4 = wy / np.sqrt(eta + wy * (f0 - fym) ** 2 + gx2 + gz2)
-                        num += c3 * fyp + c4 * fym
-                        den += c3 + c4
-                    if use_z:
-                        c5 = wz / np.sqrt(eta + wz * (fzp - f0) ** 2 + gx2 + gy2)
-                        c6 = wz / np.sqrt(eta + wz * (f0 - fzm) ** 2 + gx2 + gy2)
-                        num += c5 * fzp + c6 * fzm
-                        den += c5 + c6
-                    force = 0.0
-                    if inside:
-                        bit = 1 << k
-                        force = e[p & ~bit] - e[p | bit]
-                    a = dt * eps / (eps * eps + f0 * f0)
-                    fnew = (f0 + a * (mu[k] * num + force)) / (1.0 + mu[k] * a * den)
-                    out[k, iz, iy, ix] = fnew
-                    change += (fnew - f0) ** 2
-                    if fnew > 0.0:
-                        pnew |= 1 << k
-                if inside:
-                    counts[pnew] += 1.0
-                    for i in range(C):
-                        sums[pnew, i] += u[i, iz, iy, ix]
+            if nz == 1:
+                change += _row_2d(phi[iz, iy], phi[iz, yp], phi[iz, ym], force[iz, iy],
+                                  out[iz, iy], mu, dt, eps, wy, wx)
+            else:
+                change += _row_3d(phi[iz, iy], phi[iz, yp], phi[iz, ym], phi[zp, iy],
+                                  phi[zm, iy], force[iz, iy], out[iz, iy], mu, dt, eps, wz, wy,
+                                  wx)
     return change
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _region_sums(phi, u, mask, sums, counts):
+    # channel sums and voxel counts per region over the masked voxels (branch-free inner loop)
+    K = phi.shape[0]
+    C = u.shape[0]
+    _, nz, ny, nx = phi.shape
+    sums[...] = 0.0
+    counts[...] = 0.0
+    if K == 1:
+        # two regions: vectorisable reductions instead of a scatter
+        n_all = 0.0
+        n_in = 0.0
+        for iz in range(nz):
+            for iy in range(ny):
+                for ix in range(nx):
+                    m = mask[iz, iy, ix] * 1.0
+                    n_all += m
+                    n_in += m * (phi[0, iz, iy, ix] > 0.0)
+        counts[1] = n_in
+        counts[0] = n_all - n_in
+        for i in range(C):
+            s_all = 0.0
+            s_in = 0.0
+            for iz in range(nz):
+                for iy in range(ny):
+                    for ix in range(nx):
+                        v = mask[iz, iy, ix] * u[i, iz, iy, ix]
+                        s_all += v
+                        s_in += v * (phi[0, iz, iy, ix] > 0.0)
+            sums[1, i] = s_in
+            sums[0, i] = s_all - s_in
+        return
+    for iz in range(nz):
+        for iy in range(ny):
+            for ix in range(nx):
+                p = 0
+                for k in range(K):
+                    p += (phi[k, iz, iy, ix] > 0.0) << k
+                m = mask[iz, iy, ix] * 1.0
+                counts[p] += m
+                for i in range(C):
+                    sums[p, i] += m * u[i, iz, iy, ix]
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _forces(phi, u, c, lam, area, mask, force, e):
+    # force[k] = e_{p without bit k} - e_{p with bit k}; zero outside mask
+    K = phi.shape[0]
+    C = u.shape[0]
+    P = c.shape[0]
+    _, nz, ny, nx = phi.shape
+    inv_c = 1.0 / C
+    for iz in range(nz):
+        for iy in range(ny):
+            # data energy of every region along the row (vectorised over x)
+            for q in range(P):
+                eq = e[q]
+                for ix in range(nx):
+                    eq[ix] = area[q]
+                for i in range(C):
+                    w = lam[q, i] * inv_c
+                    cq = c[q, i]
+                    ur = u[i, iz, iy]
+                    for ix in range(nx):
+                        d = ur[ix] - cq
+                        eq[ix] += w * d * d
+            if K == 1:
+                f = force[0, iz, iy]
+                mr = mask[iz, iy]
+                for ix in range(nx):
+                    f[ix] = mr[ix] * (e[0, ix] - e[1, ix])
+                continue
+            for ix in range(nx):
+                p = 0
+                for k in range(K):
+                    p += (phi[k, iz, iy, ix] > 0.0) << k
+                m = mask[iz, iy, ix] * 1.0
+                for k in range(K):
+                    bit = 1 << k
+                    force[k, iz, iy, ix] = m * (e[p & ~bit, ix] - e[p | bit, ix])
 
 
 def region_means(u, phi, mask, previous=None):
@@ -222,8 +440,8 @@ def region_means(u, phi, mask, previous=None):
 
     Parameters
     ----------
-    u : ndarray, shape ``(C, Z, Y, X)``
-    phi : ndarray, shape ``(K, Z, Y, X)``
+    u : ndarray of float64, shape ``(C, Z, Y, X)``
+    phi : ndarray of float64, shape ``(K, Z, Y, X)``
     mask : ndarray of bool, shape ``(Z, Y, X)``
     previous : ndarray, shape ``(2**K, C)``, optional
         Values kept for empty regions; default the mean over ``mask``.
@@ -234,22 +452,20 @@ def region_means(u, phi, mask, previous=None):
     counts : ndarray of float64, shape ``(2**K,)``
     """
     P = 2 ** phi.shape[0]
-    p = region_index(phi)[mask]
-    counts = np.bincount(p, minlength=P).astype(float)
-    sums = np.stack([np.bincount(p, weights=ui[mask], minlength=P) for ui in u], axis=1)
-    return _means_from_sums(sums, counts, u, mask, previous), counts
-
-
-def _means_from_sums(sums, counts, u, mask, previous):
+    sums = np.zeros((P, u.shape[0]))
+    counts = np.zeros(P)
+    _region_sums(np.ascontiguousarray(phi, dtype=np.float64),
+                 np.ascontiguousarray(u, dtype=np.float64),
+                 np.ascontiguousarray(mask, dtype=bool), sums, counts)
     if previous is None:
-        previous = np.broadcast_to(u[:, mask].mean(axis=1), sums.shape)
+        previous = np.broadcast_to(sums.sum(axis=0) / max(counts.sum(), 1.0), sums.shape)
     c = np.array(previous, dtype=float, copy=True)
     nz = counts > 0
     c[nz] = sums[nz] / counts[nz, None]
-    return c
+    return c, counts
 
 
-def evolve_step(phi, u, c, lam, area, mu, dt, eps, inv_h2, mask, out, sums, counts, scratch):
+def evolve_step(phi, u, c, lam, area, mu, dt, eps, inv_h2, mask, out, force, scratch):
     """One semi-implicit sweep of the multiphase multichannel level-set flow (paper eq. 21).
 
     For each level set ``k`` (Jacobi over ``k``: all use the old ``phi``)::
@@ -259,11 +475,10 @@ def evolve_step(phi, u, c, lam, area, mu, dt, eps, inv_h2, mask, out, sums, coun
         F_k = e_{p with bit k cleared} - e_{p with bit k set},
         e_q = area_q + (1/C) sum_i lam_{q,i} (u_i - c_{q,i})**2,
 
-    where ``p`` is the voxel's current region and ``C_j`` the curvature face coefficients.
-    ``F_k`` is the exact first variation of the data term of eq. (21) with respect to ``phi_k``
-    when the other level sets enter through sharp Heaviside functions. Outside ``mask`` the data
-    force is zero (curvature only). The new region sums (for the next means) are accumulated
-    in the same pass.
+    where ``p`` is the voxel's current region, ``phi_j`` its 4 (2-D) or 6 (3-D) neighbours and
+    ``C_j`` the curvature face coefficients. ``F_k`` is the first variation of the data term of
+    eq. (21) with respect to ``phi_k`` when the other level sets enter through sharp Heaviside
+    functions (exact for ``K = 1``). Outside ``mask`` the data force is zero (curvature only).
 
     Parameters
     ----------
@@ -280,27 +495,47 @@ def evolve_step(phi, u, c, lam, area, mu, dt, eps, inv_h2, mask, out, sums, coun
     mask : ndarray of bool, shape ``(Z, Y, X)``
     out : ndarray like ``phi``
         Receives the new level sets.
-    sums, counts, scratch : ndarray, shapes ``(2**K, C)``, ``(2**K,)``, ``(2**K,)``
-        Work arrays; ``sums`` and ``counts`` are zeroed here and hold the region sums of ``out``.
+    force : ndarray like ``phi``
+        Work array (receives ``F_k``).
+    scratch : ndarray of float64, shape ``(2**K, X)``
+        Work array.
 
     Returns
     -------
     change : float
         ``sum((out - phi)**2)`` over all level sets and voxels.
     """
-    sums[...] = 0.0
-    counts[...] = 0.0
-    return _kernel(phi, u, c, lam, area, mu, float(dt), float(eps), inv_h2, mask, out, sums,
-                   counts, scratch)
+    _forces(phi, u, c, lam, area, mask, force, scratch)
+    wz = inv_h2[0] if phi.shape[1] > 1 else 0.0
+    wy = inv_h2[1] if phi.shape[2] > 1 else 0.0
+    change = 0.0
+    for k in range(phi.shape[0]):
+        change += _stencil(phi[k], force[k], out[k], float(mu[k]), float(dt), float(eps),
+                           float(wz), float(wy), float(inv_h2[2]))
+    return change
 
 
 def evolve(u, phi, lam, area, mu, *, dt, eps, tol, max_iter, reinit_every=0, spacing=None,
-           mask=None):
+           mask=None, stop="phi", window=5, energy_scale="range"):
     """Iterate :func:`evolve_step` until the level sets stop changing.
 
-    Stops when the root-mean-square change of ``phi`` over one sweep (over all level sets and
-    voxels, the criterion of scikit-image's ``chan_vese``) is at most ``tol``, or after
-    ``max_iter`` sweeps. Region means are updated after every sweep.
+    Region means are recomputed (over ``mask``, sharp Heaviside) before every sweep; an empty
+    region keeps its previous means. Stops when the root-mean-square change of ``phi`` over one
+    sweep (over all level sets and voxels: the criterion of scikit-image's ``chan_vese``) is at
+    most ``tol`` (``stop="phi"``), or when at most the fraction ``tol`` of the voxels changed
+    region over the last ``window`` sweeps (``stop="regions"``; the level sets may keep growing
+    away from the contours, which the first test would count as change), or after
+    ``max_iter`` sweeps.
+
+    The energy is divided by a constant ``s`` before the flow starts. This does not change its
+    minimisers; it makes the time step ``dt`` (and ``eps``, which is in level-set units)
+    independent of the intensity scale of the channels. ``energy_scale="range"``:
+    ``s = max_{q,i} lam_{q,i} R_i**2`` with ``R_i`` the range of channel ``i`` over ``mask``;
+    one channel on ``[0, 1]`` with ``lam = 1`` has ``s = 1``, the setting of scikit-image
+    (which rescales its image to ``[0, 1]``). ``"variance"``: ``s = (1/C) sum_i mean_q
+    lam_{q,i} var_i``, the data energy per voxel of the one-region partition, so typical data
+    forces are of order one whatever the contrast (the flow moves in a few sweeps instead of
+    hundreds when the classes differ by a small part of the range). A number: ``s`` itself.
 
     Parameters
     ----------
@@ -308,18 +543,24 @@ def evolve(u, phi, lam, area, mu, *, dt, eps, tol, max_iter, reinit_every=0, spa
         Channels.
     phi : ndarray, shape ``(K, Z, Y, X)``
         Initial level sets (copied).
-    lam : ndarray, shape ``(2**K, C)``
-    area : ndarray, shape ``(2**K,)``
-    mu : ndarray, shape ``(K,)``
+    lam : array_like, broadcastable to ``(2**K, C)``
+    area : array_like, broadcastable to ``(2**K,)``
+    mu : array_like, broadcastable to ``(K,)``
     dt, eps, tol : float
     max_iter : int
     reinit_every : int
         If > 0, reset every level set to the signed distance of its inside region
-        (in voxel units of the smallest spacing) every ``reinit_every`` sweeps.
+        (in units of the smallest spacing, clipped to +-6) every ``reinit_every`` sweeps.
     spacing : sequence of 3 float, optional
         Voxel size ``(Z, Y, X)`` used in the curvature term; default 1.
     mask : ndarray of bool, shape ``(Z, Y, X)``, optional
         Voxels that carry data (see :func:`evolve_step`); default all.
+    stop : {"phi", "regions"}
+        Stopping test (see above).
+    window : int
+        Sweeps between two region comparisons (``stop="regions"``).
+    energy_scale : {"range", "variance"} or float
+        Normalisation of the energy (see above).
 
     Returns
     -------
@@ -331,34 +572,62 @@ def evolve(u, phi, lam, area, mu, *, dt, eps, tol, max_iter, reinit_every=0, spa
     """
     u = np.ascontiguousarray(u, dtype=np.float64)
     phi = np.array(phi, dtype=np.float64, order="C", copy=True)
+    if min(u.shape[2:]) < 2:
+        raise InputError(f"image: in-plane size {u.shape[2:]}; level sets need at least 2 x 2 "
+                         "pixels")
     K = phi.shape[0]
     P = 2**K
-    spatial = u.shape[1:]
-    mask = np.ones(spatial, bool) if mask is None else np.ascontiguousarray(mask, dtype=bool)
+    mask = (np.ones(u.shape[1:], bool) if mask is None
+            else np.ascontiguousarray(mask, dtype=bool))
     spacing = np.ones(3) if spacing is None else np.asarray(spacing, dtype=float)
-    inv_h2 = np.ascontiguousarray(1.0 / spacing**2)
+    inv_h2 = 1.0 / spacing**2
     lam = np.ascontiguousarray(np.broadcast_to(lam, (P, u.shape[0])), dtype=np.float64)
     area = np.ascontiguousarray(np.broadcast_to(area, (P,)), dtype=np.float64)
     mu = np.ascontiguousarray(np.broadcast_to(mu, (K,)), dtype=np.float64)
+    # energy scale: minimisers do not change, the time step becomes scale free
+    if isinstance(energy_scale, str):
+        if energy_scale == "range":
+            ranges = np.array([np.ptp(ui[mask]) for ui in u])
+            scale = float(np.max(lam * ranges**2))
+        elif energy_scale == "variance":
+            var = np.array([np.var(ui[mask]) for ui in u])
+            scale = float(np.mean(lam.mean(axis=0) * var))
+        else:
+            raise InputError(f"energy_scale: expected 'range', 'variance' or a number, got "
+                             f"{energy_scale!r}")
+    else:
+        scale = float(energy_scale)
+        if not scale > 0:
+            raise InputError(f"energy_scale: expected a number > 0, got {energy_scale!r}")
+    if scale > 0:
+        lam, area, mu = lam / scale, area / scale, mu / scale
     out = np.empty_like(phi)
-    sums = np.zeros((P, u.shape[0]))
-    counts = np.zeros(P)
-    scratch = np.zeros(P)
-    c, _ = region_means(u, phi, mask)
-    n_voxels = phi.size
+    force = np.empty_like(phi)
+    scratch = np.empty((P, phi.shape[-1]))
+    if stop not in ("phi", "regions"):
+        raise InputError(f"stop: expected 'phi' or 'regions', got {stop!r}")
+    c = None
     converged = False
     it = 0
+    last = region_index(phi) if stop == "regions" else None
     while it < max_iter:
-        change = evolve_step(phi, u, c, lam, area, mu, dt, eps, inv_h2, mask, out, sums, counts,
+        c, _ = region_means(u, phi, mask, c)
+        change = evolve_step(phi, u, c, lam, area, mu, dt, eps, inv_h2, mask, out, force,
                              scratch)
         phi, out = out, phi
-        c = _means_from_sums(sums, counts, u, mask, c)
         it += 1
-        if np.sqrt(change / n_voxels) <= tol:
+        if stop == "phi" and np.sqrt(change / phi.size) <= tol:
             converged = True
             break
+        if stop == "regions" and it % window == 0:
+            now = region_index(phi)
+            if np.count_nonzero(now != last) <= tol * now.size:
+                converged = True
+                break
+            last = now
         if reinit_every and it % reinit_every == 0:
             unit = float(spacing.min())
             for k in range(K):
-                phi[k] = signed_distance(phi[k] > 0, spacing) / unit
+                phi[k] = signed_distance(phi[k] > 0, spacing, band=_REINIT_BAND * unit) / unit
+    c, _ = region_means(u, phi, mask, c)
     return phi, c, it, converged

@@ -1,0 +1,158 @@
+"""Configuration of the ``segment`` stage (paper §4.1–4.2).
+
+Intensity convention: every level-set model works on the MRI scaled robustly to [0, 255] and
+on fibre channels ``255 * feature`` (see :mod:`pixmuscle.segmentation.features`); the paper's
+``lambda = 0.02`` and ``mu = 1`` / ``100`` are meant on that scale.
+
+Example (YAML)::
+
+    segment:
+      mri: data/leg_t1.nii.gz
+      dti_tensor: data/leg_dti_tensor.nii.gz
+      tensor_order: fsl
+      imct_mask: data/leg_imct.nii.gz
+      imat_mask: data/leg_imat.nii.gz
+      seed_units: cm
+      seeds:
+        tibialis_anterior: [[0.5, 2.7, 13.0]]
+        soleus: [[-0.3, -2.3, 13.0], [-0.3, -2.3, 16.0]]
+      multiphase: {n_levelsets: 3, mu: [1.0], lambdas: [0.02], fiber_channels: outer}
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from pixmuscle.errors import InputError
+
+__all__ = ["TwoPhaseConfig", "BoneConfig", "MultiphaseConfig", "SegmentConfig"]
+
+
+@dataclass(frozen=True)
+class TwoPhaseConfig:
+    """Two-phase Chan–Vese (Chan & Vese 2001) settings, MRI on the [0, 255] scale."""
+
+    mu: float = field(default=100.0, metadata={
+        "range": (0.0, None), "doc": "contour length weight (paper: 1 or 100)"})
+    nu: float = field(default=0.0, metadata={"doc": "area weight of the inside region"})
+    lambda1: float = field(default=0.02, metadata={
+        "range": (0.0, None), "doc": "data weight inside, per squared grey level (paper: 0.02)"})
+    lambda2: float = field(default=0.02, metadata={
+        "range": (0.0, None), "doc": "data weight outside, per squared grey level"})
+    dt: float = field(default=0.5, metadata={"gt": 0.0, "doc": "time step of the scheme"})
+    eps: float = field(default=1.0, metadata={
+        "gt": 0.0, "doc": "width of the regularised Dirac (level-set units)"})
+    tol: float = field(default=5e-4, metadata={
+        "range": (0.0, 1.0), "doc": "stop when at most this fraction of voxels changes side "
+                                    "over `window` iterations"})
+    window: int = field(default=10, metadata={"range": (1, None),
+                                              "doc": "iterations between convergence checks"})
+    max_iter: int = field(default=500, metadata={"range": (1, None), "doc": "iteration limit"})
+    reinit_every: int = field(default=5, metadata={
+        "range": (0, None), "doc": "reinitialise to a signed distance every n iterations (0: never)"})
+
+
+@dataclass(frozen=True)
+class BoneConfig(TwoPhaseConfig):
+    """Two-phase Chan–Vese settings for the bones (dark cortex inside the leg)."""
+
+    mu: float = field(default=30.0, metadata={
+        "range": (0.0, None), "doc": "contour length weight (a thin cortex needs less than the "
+                                     "outer boundary)"})
+
+
+@dataclass(frozen=True)
+class MultiphaseConfig:
+    """Multiphase multichannel Vese–Chan settings (paper eq. 21)."""
+
+    n_levelsets: int = field(default=3, metadata={
+        "range": (1, 6), "doc": "K level sets -> 2^K regions (paper: 3)"})
+    mu: tuple[float, ...] = field(default=(1.0,), metadata={
+        "range": (0.0, None), "doc": "length weight per level set (1 value or K; paper: 1)"})
+    lambdas: tuple[float, ...] = field(default=(0.02,), metadata={
+        "range": (0.0, None),
+        "doc": "data weight per channel (1 value, or one per channel: MRI first, then fibre "
+               "channels), per squared grey level (paper: 0.02)"})
+    lambdas_per_region: list[list[float]] | None = field(default=None, metadata={
+        "doc": "optional (2^K x channels) data weights; overrides `lambdas`"})
+    fiber_channels: Literal["outer", "canonical", "abs", "none"] = field(default="outer", metadata={
+        "doc": "fibre channels: outer = 6 components of v v^T (sign-free, continuous); "
+               "canonical = e1, e2, e3 with v_z >= 0 (the paper's); none = MRI only"})
+    use_mri: bool = field(default=True, metadata={"doc": "include the MRI as channel 0"})
+    init: Literal["seeds", "kmeans", "checkerboard"] = field(default="seeds", metadata={
+        "doc": "initial regions: nearest seed features (muscle m -> region m), k-means "
+               "clusters of the channels, or Vese-Chan checkerboards (the last two in per-slice "
+               "mode warm-start each slice from its finished neighbour)"})
+    dt: float = field(default=0.5, metadata={"gt": 0.0, "doc": "time step"})
+    eps: float = field(default=1.0, metadata={"gt": 0.0, "doc": "Dirac width (level-set units)"})
+    tol: float = field(default=5e-4, metadata={
+        "range": (0.0, 1.0), "doc": "stop when at most this fraction of voxels changes region "
+                                    "over `window` iterations"})
+    window: int = field(default=10, metadata={"range": (1, None),
+                                              "doc": "iterations between convergence checks"})
+    max_iter: int = field(default=300, metadata={"range": (1, None), "doc": "iteration limit"})
+    reinit_every: int = field(default=5, metadata={
+        "range": (0, None), "doc": "reinitialise every n iterations (0: never)"})
+
+
+@dataclass(frozen=True)
+class SegmentConfig:
+    """``segment`` section: inputs, the level-set models and label assembly (paper §4.1–4.2)."""
+
+    mri: Path | None = field(default=None, metadata={
+        "must_exist": True, "doc": "anatomical MRI (NIfTI), defines the label grid"})
+    dti_tensor: Path | None = field(default=None, metadata={
+        "must_exist": True, "doc": "diffusion tensor image (NIfTI, 6 components)"})
+    dti_v1: Path | None = field(default=None, metadata={
+        "must_exist": True, "doc": "principal eigenvector image (NIfTI, 3 components), used "
+                                   "when no tensor is given"})
+    tensor_order: Literal["fsl", "dipy", "mrtrix"] = field(default="fsl", metadata={
+        "doc": "component order of the tensor file"})
+    dti_components: Literal["world", "voxel", "fsl"] = field(default="world", metadata={
+        "doc": "axes of the DTI vector/tensor components in the files"})
+    imct_mask: Path | None = field(default=None, metadata={
+        "must_exist": True, "doc": "IMCT mask (NIfTI, any grid): labelled connective tissue"})
+    imat_mask: Path | None = field(default=None, metadata={
+        "must_exist": True, "doc": "IMAT mask (NIfTI, any grid): labelled fat"})
+    seeds: dict[str, list[list[float]]] = field(default_factory=dict, metadata={
+        "doc": "muscle name -> list of seed points [x, y, z] inside that muscle (order = ids)"})
+    seed_units: Literal["cm", "voxel"] = field(default="cm", metadata={
+        "doc": "seed coordinates: world cm (through the MRI affine) or MRI voxel indices"})
+    mode: Literal["slice", "3d"] = field(default="slice", metadata={
+        "doc": "level sets per 2-D slice (the paper) or on the whole volume"})
+    outer: TwoPhaseConfig = field(default_factory=TwoPhaseConfig, metadata={
+        "doc": "Chan-Vese for the outer boundary (leg vs air)"})
+    bone: BoneConfig = field(default_factory=BoneConfig, metadata={
+        "doc": "Chan-Vese for the bones (inside the leg)"})
+    multiphase: MultiphaseConfig = field(default_factory=MultiphaseConfig, metadata={
+        "doc": "multiphase segmentation of the muscles"})
+    fiber_min_fa: float = field(default=0.0, metadata={
+        "range": (0.0, 1.0), "doc": "fibre data needs FA at least this"})
+    fiber_min_trace: float = field(default=0.5, metadata={
+        "range": (0.0, None), "doc": "fibre data needs trace(D) at least this fraction of the "
+                                     "median trace of the non-zero tensors"})
+    min_marrow_bright: float = field(default=0.5, metadata={
+        "range": (0.0, 1.0), "doc": "a hole in the dark bone class is marrow if at least this "
+                                    "fraction of it is in the bright (fat-like) class"})
+    max_cortex_cm: float = field(default=0.6, metadata={
+        "gt": 0.0, "doc": "thickest cortex (cm): dark voxels this close to marrow are bone"})
+    qc_png: bool = field(default=True, metadata={"doc": "write per-slice overlay PNGs"})
+
+    def __post_init__(self):
+        names = list(self.seeds)
+        for name, pts in self.seeds.items():
+            if not pts:
+                raise InputError(f"segment.seeds.{name}: expected at least one point")
+            for i, p in enumerate(pts):
+                if len(p) != 3:
+                    raise InputError(f"segment.seeds.{name}[{i}]: expected 3 coordinates "
+                                     f"[x, y, z], got {list(p)}")
+        k = self.multiphase.n_levelsets
+        if len(names) > 2**k:
+            raise InputError(f"segment.seeds: {len(names)} muscles but "
+                             f"segment.multiphase.n_levelsets = {k} gives only {2**k} regions")
+        if len(self.multiphase.mu) not in (1, k):
+            raise InputError(f"segment.multiphase.mu: expected 1 or {k} values, got "
+                             f"{len(self.multiphase.mu)}")

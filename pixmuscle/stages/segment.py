@@ -1,0 +1,191 @@
+"""``segment`` stage: NIfTI MRI + DTI (+ IMCT/IMAT masks) -> ``segmentation.h5``.
+
+Reads the inputs named in the ``segment`` config section (:class:`~pixmuscle.segmentation.
+config.SegmentConfig`), maps the DTI onto the MRI grid through the affines (tensors are
+interpolated, never eigenvectors), runs :func:`pixmuscle.segmentation.pipeline.segment_volume`
+and writes
+
+* ``<out>`` — HDF5, schema ``pixmuscle.segmentation`` v1 (docs/architecture.md);
+* ``<stem>_labels.nii.gz``, ``<stem>_muscles.nii.gz`` (muscle ids), ``<stem>_fibers.nii.gz``
+  — for ITK-SNAP / 3D Slicer;
+* ``<stem>_qc/slice_XXX.png`` — MRI with tissue and muscle contours, one per slice.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from pixmuscle.errors import InputError
+from pixmuscle.imaging.dti import (
+    resample_tensor_to_grid,
+    resample_vectors_to_grid,
+    tensor_from_components,
+)
+from pixmuscle.imaging.nifti import load_volume, save_volume
+from pixmuscle.imaging.resample import resample_labels
+from pixmuscle.segmentation.config import SegmentConfig
+from pixmuscle.segmentation.pipeline import SegmentationResult, segment_volume
+from pixmuscle.store import write_dataset, write_stage
+
+__all__ = ["SCHEMA", "VERSION", "run_segment", "write_segmentation", "write_qc_pngs"]
+
+SCHEMA = "pixmuscle.segmentation"
+VERSION = 1
+_LOG = logging.getLogger(__name__)
+
+
+def _same_grid(a_shape, a_affine, b_shape, b_affine):
+    return tuple(a_shape) == tuple(b_shape) and np.allclose(a_affine, b_affine, atol=1e-6)
+
+
+def _mask_on_grid(path, shape, affine, name):
+    vol = load_volume(path, kind="labels", allow_empty=True)
+    if _same_grid(vol.data.shape, vol.affine, shape, affine):
+        return vol.data != 0
+    _LOG.info("%s: resampling from %s to the MRI grid (nearest neighbour)", name, vol.data.shape)
+    return resample_labels(vol.data != 0, vol.affine, shape, affine, name=f"{name} {path}")
+
+
+def _dti_on_grid(cfg, shape, affine):
+    if cfg.dti_tensor is not None:
+        vol = load_volume(cfg.dti_tensor, kind="tensor", components=cfg.dti_components,
+                          tensor_order=cfg.tensor_order)
+        d = tensor_from_components(vol.data, cfg.tensor_order)
+        return resample_tensor_to_grid(d, vol.affine, shape, affine)
+    if cfg.dti_v1 is not None:
+        vol = load_volume(cfg.dti_v1, kind="vectors", components=cfg.dti_components)
+        v, has = resample_vectors_to_grid(vol.data, vol.affine, shape, affine)
+        # rank-one tensors v v^T carry the direction; trace 1 where there is data
+        return v[..., :, None] * v[..., None, :], has
+    raise InputError("segment: no DTI input; set segment.dti_tensor (preferred) or "
+                     "segment.dti_v1")
+
+
+def run_segment(cfg, out_path, progress=None):
+    """Run the segment stage.
+
+    Parameters
+    ----------
+    cfg : SegmentConfig
+        Needs ``mri``, ``dti_tensor`` or ``dti_v1``, and ``seeds``; ``imct_mask`` and
+        ``imat_mask`` are optional.
+    out_path : path-like
+        The HDF5 file to write (the NIfTI and PNG outputs go next to it).
+    progress : object with ``advance(n=1, **fields)`` and ``log(msg)``, optional
+        If None, a :func:`pixmuscle.progress.progress` bar is used.
+
+    Returns
+    -------
+    SegmentationResult
+    """
+    if not isinstance(cfg, SegmentConfig):
+        raise InputError(f"run_segment: expected a SegmentConfig, got {type(cfg).__name__}")
+    if cfg.mri is None:
+        raise InputError("segment.mri: required key is missing (anatomical MRI, NIfTI)")
+    out_path = Path(out_path)
+    mri = load_volume(cfg.mri, kind="image")
+    shape, affine = mri.data.shape, mri.affine
+    d_grid, covered = _dti_on_grid(cfg, shape, affine)
+    imct = None if cfg.imct_mask is None else _mask_on_grid(cfg.imct_mask, shape, affine,
+                                                           "segment.imct_mask")
+    imat = None if cfg.imat_mask is None else _mask_on_grid(cfg.imat_mask, shape, affine,
+                                                           "segment.imat_mask")
+    inputs = [p for p in (cfg.mri, cfg.dti_tensor, cfg.dti_v1, cfg.imct_mask, cfg.imat_mask)
+              if p is not None]
+    if progress is None:
+        from pixmuscle.progress import progress as bar
+
+        with bar(5, "segment") as p:
+            res = segment_volume(mri.data, affine, d_grid, covered, imct, imat, cfg, progress=p)
+    else:
+        res = segment_volume(mri.data, affine, d_grid, covered, imct, imat, cfg,
+                             progress=progress)
+    write_segmentation(out_path, res, affine, config=cfg, inputs=inputs)
+    stem = out_path.name[:-len(out_path.suffix)] if out_path.suffix else out_path.name
+    save_volume(out_path.with_name(f"{stem}_labels.nii.gz"), res.labels, affine, kind="labels")
+    save_volume(out_path.with_name(f"{stem}_muscles.nii.gz"), res.muscle_id, affine,
+                kind="labels")
+    save_volume(out_path.with_name(f"{stem}_fibers.nii.gz"), res.fiber, affine, kind="vectors")
+    if cfg.qc_png:
+        write_qc_pngs(out_path.with_name(f"{stem}_qc"), mri.data, res)
+    return res
+
+
+def write_segmentation(path, res: SegmentationResult, affine, *, config=None, inputs=()):
+    """Write a :class:`SegmentationResult` as ``pixmuscle.segmentation`` v1 (atomic).
+
+    Layout: ``/labels`` (I,J,K) int16, ``/muscle_id`` (I,J,K) int16, ``/muscle_names`` (M,) str,
+    ``/fiber`` (I,J,K,3) float32, ``/affine`` (4,4) cm, ``/qc/*`` diagnostics.
+    """
+    affine = np.asarray(affine, dtype=float)
+
+    def write(f):
+        write_dataset(f, "labels", res.labels.astype(np.int16),
+                      codes="0 background, 1 muscle, 2 connective_tissue, 3 fat, 4 bone")
+        write_dataset(f, "muscle_id", res.muscle_id.astype(np.int16))
+        write_dataset(f, "muscle_names", np.array(res.muscle_names, dtype=str))
+        write_dataset(f, "fiber", res.fiber.astype(np.float32), units="1",
+                      sign="canonical: v_z >= 0 (ties: v_y > 0, then v_x > 0)")
+        write_dataset(f, "affine", affine, units="cm")
+        qc = f.create_group("qc")
+        for key, val in res.qc.items():
+            if key == "seed_voxels_ijk":
+                g = qc.create_group(key)
+                for name, pts in zip(res.muscle_names, val, strict=True):
+                    write_dataset(g, name, np.asarray(pts, dtype=np.int64))
+            elif key == "shared_regions":
+                qc.attrs[key] = repr([[res.muscle_names[m - 1] for m in grp] for grp in val])
+            elif np.ndim(val) == 0:
+                qc.attrs[key] = val
+            else:
+                write_dataset(qc, key, np.asarray(val))
+
+    return write_stage(path, schema=SCHEMA, version=VERSION, write=write, config=config,
+                       inputs=inputs, units={"length": "cm"})
+
+
+def write_qc_pngs(folder, mri, res: SegmentationResult):
+    """One PNG per slice: the MRI with tissue contours (colours) and muscle boundaries (white).
+
+    Parameters
+    ----------
+    folder : path-like
+        Created if needed; files ``slice_000.png`` ...
+    mri : ndarray, shape ``(I, J, K)``
+    res : SegmentationResult
+
+    Returns
+    -------
+    list of Path
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    lo, hi = np.percentile(mri, [0.5, 99.5])
+    colors = {1: "tab:red", 2: "tab:green", 3: "gold", 4: "tab:blue"}
+    paths = []
+    for k in range(mri.shape[2]):
+        fig = Figure(figsize=(5, 5 * mri.shape[1] / mri.shape[0]), dpi=100)
+        FigureCanvasAgg(fig)
+        ax = fig.add_axes((0, 0, 1, 1))
+        ax.imshow(mri[:, :, k].T, origin="lower", cmap="gray", vmin=lo, vmax=hi,
+                  interpolation="nearest")
+        for code, color in colors.items():
+            m = (res.labels[:, :, k] == code).T.astype(float)
+            if 0 < m.sum() < m.size:
+                ax.contour(m, levels=[0.5], colors=color, linewidths=0.6)
+        mid = res.muscle_id[:, :, k].T
+        for m_id in np.unique(mid[mid > 0]):
+            ax.contour((mid == m_id).astype(float), levels=[0.5], colors="white",
+                       linewidths=0.4)
+        ax.set_axis_off()
+        ax.text(2, 2, f"slice {k}", color="yellow", fontsize=8)
+        p = folder / f"slice_{k:03d}.png"
+        fig.savefig(p)
+        paths.append(p)
+    return paths
