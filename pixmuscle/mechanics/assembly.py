@@ -1,0 +1,199 @@
+"""Assembly of the nodally integrated tangent stiffness on a fixed sparsity pattern (paper eqs. 17–20).
+
+With SCNI every integration point is a node L with smoothed gradients g_I(L) = b̃_I(X_L) ∈ R³
+(:mod:`pixmuscle.mechanics.scni`). The 3×3 block of the consistent tangent coupling nodes I and J is
+
+    K_IJ[i, k] = Σ_L w_L Σ_{J', L'} g_I(L)[J'] A_L[i, J', k, L'] g_J(L)[L'],
+
+i.e. K = Σ_L w_L B̃_Lᵀ A_L B̃_L (eqs. 18–20), with A_L[i, J, k, L] = ∂P_iJ/∂F_kL the first
+elasticity tensor at node L (errata: the 9×9 matrix C of eq. 20 in the 9-vector order of eq. 17)
+and w_L = V_L. The pattern — all node pairs that share the support of some cell — is computed once
+per model (as the structure of Sᵀ S with S the cell–node support incidence) and stored as a
+block-CSR (BSR, 3×3 blocks) matrix; each Newton iteration only refills the values with a compiled
+kernel (one pass over cells, no Python loop over nodes or pairs). The same kernel assembles the
+stabilisation term with other per-cell gradient vectors on the same supports.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill(ptr, nodes, g, A, w, indptr, indices, data):  # pragma: no cover - compiled
+    nc = ptr.shape[0] - 1
+    t = np.empty((3, 3, 3))
+    for L in range(nc):
+        s = ptr[L]
+        e = ptr[L + 1]
+        wL = w[L]
+        if wL == 0.0:
+            continue
+        for bb in range(s, e):
+            nb = nodes[bb]
+            g0 = g[bb, 0]
+            g1 = g[bb, 1]
+            g2 = g[bb, 2]
+            if g0 == 0.0 and g1 == 0.0 and g2 == 0.0:
+                continue
+            for i in range(3):
+                for J in range(3):
+                    for k in range(3):
+                        t[i, J, k] = wL * (A[L, i, J, k, 0] * g0 + A[L, i, J, k, 1] * g1 + A[L, i, J, k, 2] * g2)
+            for aa in range(s, e):
+                na = nodes[aa]
+                h0 = g[aa, 0]
+                h1 = g[aa, 1]
+                h2 = g[aa, 2]
+                if h0 == 0.0 and h1 == 0.0 and h2 == 0.0:
+                    continue
+                lo = indptr[na]
+                hi = indptr[na + 1] - 1
+                while lo < hi:  # binary search for column nb in block row na
+                    mid = (lo + hi) >> 1
+                    if indices[mid] < nb:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                for i in range(3):
+                    for k in range(3):
+                        data[lo, i, k] += h0 * t[i, 0, k] + h1 * t[i, 1, k] + h2 * t[i, 2, k]
+
+
+def _int_dtype(n: int):
+    return np.int32 if n < np.iinfo(np.int32).max else np.int64
+
+
+def support_pattern(incidence: list, psi_faces: sp.spmatrix) -> sp.csr_matrix:
+    """Cell–node support incidence S (N_cells × N_nodes): S[L, I] = 1 where Ψ_I is non-zero on a face of Ω_L.
+
+    Built from the structure (not the values) of the face–cell incidence and of Ψ at the faces,
+    so that no entry is lost to an exact cancellation.
+    """
+    D = abs(incidence[0]) + abs(incidence[1]) + abs(incidence[2])
+    D.data[:] = 1.0
+    Pf = sp.csr_matrix(psi_faces, copy=True)
+    Pf.data[:] = 1.0
+    S = (D @ Pf).tocsr()
+    S.data[:] = 1.0
+    S.sort_indices()
+    return S
+
+
+class Assembler:
+    """Fixed block pattern of the stiffness and a compiled value fill.
+
+    Parameters
+    ----------
+    support : CSR (N_cells, N_nodes)
+        Cell–node support incidence (:func:`support_pattern`); its sorted column indices per row
+        are the nodes whose gradient vectors enter cell L.
+
+    Attributes
+    ----------
+    indptr, indices : int32 arrays
+        Block-CSR structure of the N × N block pattern (3×3 blocks), columns sorted.
+    """
+
+    def __init__(self, support: sp.csr_matrix):
+        S = sp.csr_matrix(support)
+        S.sort_indices()
+        self.n_cells, self.n_nodes = S.shape
+        it = _int_dtype(max(S.nnz, self.n_nodes))
+        self.ptr = S.indptr.astype(it)
+        self.nodes = S.indices.astype(it)
+        St = S.T.tocsr()
+        P = (St @ S).tocsr()
+        P.sort_indices()
+        it = _int_dtype(max(P.nnz, self.n_nodes))
+        self.indptr = P.indptr.astype(it)
+        self.indices = P.indices.astype(it)
+        self._rows = None
+
+    @property
+    def nnzb(self) -> int:
+        """Number of 3×3 blocks in the pattern."""
+        return int(self.indices.shape[0])
+
+    @property
+    def nnz(self) -> int:
+        """Number of scalar non-zeros (9 per block)."""
+        return 9 * self.nnzb
+
+    def zeros(self) -> np.ndarray:
+        """Empty block data, shape (nnzb, 3, 3)."""
+        return np.zeros((self.nnzb, 3, 3))
+
+    def on_support(self, mats) -> np.ndarray:
+        """Values of three (N_cells × N_nodes) operators on the support layout, shape (nnz(S), 3).
+
+        Entries of ``mats[k]`` outside the support raise ``ValueError`` (a programming error).
+        """
+        keys = np.repeat(np.arange(self.n_cells, dtype=np.int64), np.diff(self.ptr)) * self.n_nodes + self.nodes
+        out = np.zeros((keys.shape[0], 3))
+        for k, M in enumerate(mats):
+            C = sp.coo_matrix(M)
+            q = C.row.astype(np.int64) * self.n_nodes + C.col
+            pos = np.searchsorted(keys, q)
+            pos = np.minimum(pos, len(keys) - 1)
+            if not np.all(keys[pos] == q):
+                raise ValueError("operator has entries outside the cell supports")
+            np.add.at(out[:, k], pos, C.data)
+        return out
+
+    def fill(self, g: np.ndarray, A: np.ndarray, w: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Add Σ_L w_L B̃_Lᵀ A_L B̃_L to block data.
+
+        Parameters
+        ----------
+        g : (nnz(S), 3) float
+            Gradient vectors g_I(L) on the support layout (:meth:`on_support`), cm⁻¹.
+        A : (N_cells, 3, 3, 3, 3) float
+            Tangent A[L, i, J, k, L'] = ∂P_iJ/∂F_kL', N/cm².
+        w : (N_cells,) float
+            Integration weights (cell volumes, cm³).
+        out : (nnzb, 3, 3) float, optional
+            Data to add to (a new zero array when omitted).
+
+        Returns
+        -------
+        (nnzb, 3, 3) float
+            Block values of the stiffness, N/cm.
+        """
+        if out is None:
+            out = self.zeros()
+        _fill(self.ptr, self.nodes, np.ascontiguousarray(g, dtype=np.float64), np.ascontiguousarray(A, dtype=np.float64),
+              np.ascontiguousarray(w, dtype=np.float64), self.indptr, self.indices, out)
+        return out
+
+    def block_positions(self, brow: np.ndarray, bcol: np.ndarray) -> np.ndarray:
+        """Positions of blocks (brow, bcol) in the pattern; ``ValueError`` if one is outside it."""
+        if self._rows is None:
+            self._rows = np.repeat(np.arange(self.n_nodes, dtype=np.int64), np.diff(self.indptr))
+        keys = self._rows * self.n_nodes + self.indices
+        q = np.asarray(brow, np.int64) * self.n_nodes + np.asarray(bcol, np.int64)
+        pos = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
+        if not np.all(keys[pos] == q):
+            raise ValueError("matrix has entries outside the stiffness pattern")
+        return pos
+
+    def align_scalar(self, M: sp.spmatrix, i: int, k: int, out: np.ndarray) -> np.ndarray:
+        """Add an (N × N) matrix to component (i, k) of every block: K[3I+i, 3J+k] += M[I, J]."""
+        C = sp.coo_matrix(M)
+        pos = self.block_positions(C.row, C.col)
+        np.add.at(out[:, i, k], pos, C.data)
+        return out
+
+    def align(self, M: sp.spmatrix, out: np.ndarray) -> np.ndarray:
+        """Add a (3N × 3N) scalar matrix to block data."""
+        C = sp.coo_matrix(M)
+        pos = self.block_positions(C.row // 3, C.col // 3)
+        np.add.at(out, (pos, C.row % 3, C.col % 3), C.data)
+        return out
+
+    def matrix(self, data: np.ndarray) -> sp.bsr_matrix:
+        """Block-CSR matrix (3N × 3N) over the pattern with the given block values (no copy)."""
+        n = 3 * self.n_nodes
+        return sp.bsr_matrix((data, self.indices, self.indptr), shape=(n, n), blocksize=(3, 3))

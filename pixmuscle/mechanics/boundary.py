@@ -1,0 +1,240 @@
+"""Essential boundary conditions by the penalty method (paper eqs. 9–11, 19) and reaction forces.
+
+RK shape functions are not interpolating (Ψ_J(X_I) ≠ δ_IJ), so a prescribed displacement g acts on
+the RK-interpolated displacement u^h(x_c) = Σ_J Ψ_J(x_c) d_J at constraint points x_c through the
+penalty energy (the last term of eq. 9, with one quadrature point per constrained node)
+
+    Π_pen = (β/2) Σ_c w_c Σ_{j constrained} (u^h_j(x_c) − t g_cj)²,
+
+t ∈ [0, 1] the load factor of the step. Its gradient and Hessian are the penalty parts of f_ext
+and K in eq. (19): f_pen = β Ψ_cᵀ W (u^h − t g), K_pen = β Ψ_cᵀ W Ψ_c (per component).
+
+Constraint points and quadrature weights w_c (cm²) per constrained node I:
+
+* end sets ``x_min, x_max, y_min, y_max, z_min, z_max`` with ``penalty.at = auto`` (default): the
+  centre of the node's boundary face on that end (X_I ± h_k/2 e_k), weight = the face area
+  h_i h_j. This is the one-point face quadrature of the boundary integral in eq. (9) on the actual
+  end surface of the voxel body, so a homogeneous deformation is reproduced exactly.
+* any other node set, ``penalty.at = nodes``, and ``point`` conditions: the node itself,
+  u^h(X_I); weight = the area of the cell's boundary faces (cm²), or V^(2/3) for a node with none
+  (an interior node or a point constraint).
+
+Penalty number (N/cm³): β = factor · M / h_min by default, with M the largest reference
+longitudinal tangent modulus max_L,i,J A_L[i, J, i, J] (N/cm², ≈ K + 4μ/3 for an isotropic
+material) and h_min the smallest spacing; ``penalty.beta`` sets it directly. Constraint error:
+at equilibrium the penalty traction is t_c = −β (u^h − g), so |u^h − g| = |t_c| / β and, relative to
+the cell size, |u^h − g| / h_min ≈ |t_c| / (factor · M) — the traction-to-modulus ratio (a strain
+measure) divided by the factor: about 1e-3 × strain for the default factor 1e3.
+
+Reaction (sign convention of docs/architecture.md): the force the support exerts on the body,
+
+    R = −β Σ_{c in the set} w_c (u^h(x_c) − t g_c)    (constrained components only), N.
+
+The force a curve reports is R · n_out with n_out the outward normal of the end (+z for z_max,
+−z for z_min): positive when the body pulls on the support (tension).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..errors import InputError
+from .config import BoundaryCondition, bc_name
+from .scni import Faces
+
+_LOG = logging.getLogger(__name__)
+
+#: node sets whose constraint sits on the end face: name → (axis, outward sign)
+END_SETS = {"x_min": (0, -1), "x_max": (0, 1), "y_min": (1, -1), "y_max": (1, 1), "z_min": (2, -1), "z_max": (2, 1)}
+
+SIGN_CONVENTION = (
+    "reaction/<set> is the force (N) the support exerts on the body, R = -beta * sum_c w_c (u(x_c) - g_c) "
+    "over the constrained components; the force of an end is R . n_out (n_out outward normal, +z for z_max, "
+    "-z for z_min): positive = the body pulls on the support (tension)."
+)
+
+
+@dataclasses.dataclass
+class Constraints:
+    """Penalty constraint points of all boundary conditions.
+
+    Attributes
+    ----------
+    names : list of str
+        Reaction names, one per boundary condition (repeated names are summed).
+    points : (C, 3) float
+        Constraint points x_c, cm.
+    node : (C,) int
+        Constrained node of each point.
+    weight : (C,) float
+        Quadrature weight w_c, cm².
+    mask : (C, 3) bool
+        Constrained components.
+    target : (C, 3) float
+        Final prescribed displacement g_c (0 on fixed and free components), cm.
+    group : (C,) int
+        Index of the boundary condition of each point.
+    psi : CSR (C, N)
+        Ψ_J(x_c).
+    beta : float
+        Penalty number, N/cm³.
+    """
+
+    names: list
+    points: np.ndarray
+    node: np.ndarray
+    weight: np.ndarray
+    mask: np.ndarray
+    target: np.ndarray
+    group: np.ndarray
+    psi: sp.csr_matrix
+    beta: float
+
+    @property
+    def reaction_names(self) -> list[str]:
+        """Unique reaction names in order of first appearance."""
+        return list(dict.fromkeys(self.names))
+
+    def displacement(self, d: np.ndarray) -> np.ndarray:
+        """u^h(x_c), cm, shape (C, 3)."""
+        return self.psi @ d
+
+    def gap(self, d: np.ndarray, t: float) -> np.ndarray:
+        """(u^h(x_c) − t g_c) on constrained components, 0 elsewhere; cm, shape (C, 3)."""
+        return np.where(self.mask, self.displacement(d) - t * self.target, 0.0)
+
+    def force(self, d: np.ndarray, t: float) -> np.ndarray:
+        """Penalty force on the coefficients, f_pen = β Ψᵀ W (u^h − t g), N, shape (N, 3)."""
+        return self.psi.T @ (self.beta * self.weight[:, None] * self.gap(d, t))
+
+    def energy(self, d: np.ndarray, t: float) -> float:
+        """Π_pen = (β/2) Σ w_c |u^h − t g|², N·cm."""
+        gap = self.gap(d, t)
+        return 0.5 * self.beta * float(np.sum(self.weight[:, None] * gap**2))
+
+    def reactions(self, d: np.ndarray, t: float) -> dict[str, np.ndarray]:
+        """Reaction per name: force (N, shape (3,)) that the support exerts on the body."""
+        per_point = -self.beta * self.weight[:, None] * self.gap(d, t)
+        out = {name: np.zeros(3) for name in self.reaction_names}
+        for b, name in enumerate(self.names):
+            out[name] += per_point[self.group == b].sum(axis=0)
+        return out
+
+    def prescribed(self, t: float) -> dict[str, np.ndarray]:
+        """Prescribed displacement per name at load factor t (cm, (3,); 0 for free components)."""
+        out = {name: np.zeros(3) for name in self.reaction_names}
+        for b, name in enumerate(self.names):
+            sel = self.group == b
+            if np.any(sel):
+                out[name] = np.where(self.mask[sel][0], t * self.target[sel][0], out[name])
+        return out
+
+    def constrained_components(self) -> dict[str, np.ndarray]:
+        """Constrained components per name, (3,) bool."""
+        out = {name: np.zeros(3, bool) for name in self.reaction_names}
+        for b, name in enumerate(self.names):
+            sel = self.group == b
+            if np.any(sel):
+                out[name] |= self.mask[sel].any(axis=0)
+        return out
+
+    def stiffness(self, n_nodes: int) -> list[sp.csr_matrix]:
+        """Penalty stiffness per component j: β Ψᵀ diag(w m_j) Ψ (N × N), N/cm."""
+        out = []
+        for j in range(3):
+            W = sp.diags(self.beta * self.weight * self.mask[:, j])
+            out.append((self.psi.T @ W @ self.psi).tocsr())
+        return out
+
+
+def penalty_number(A0: np.ndarray, spacing, factor: float) -> float:
+    """Default penalty number β = factor · max_L,i,J A0[L, i, J, i, J] / min(spacing), N/cm³."""
+    M = max(float(np.max(A0[:, i, J, i, J])) for i in range(3) for J in range(3))
+    return float(factor) * M / float(np.min(spacing))
+
+
+def _boundary_area(faces: Faces, n_nodes: int) -> np.ndarray:
+    """Total area of the boundary faces of each cell, cm², shape (N,)."""
+    area = np.zeros(n_nodes)
+    b = faces.boundary
+    cell = np.where(faces.low[b] >= 0, faces.low[b], faces.high[b])
+    np.add.at(area, cell, faces.area[b])
+    return area
+
+
+def constraint_points(model, bcs: list[BoundaryCondition], faces: Faces, *, at: str = "auto"):
+    """Constraint points, weights and targets of the boundary conditions (no shape functions yet).
+
+    Returns
+    -------
+    names, points, node, weight, mask, target, group
+        See :class:`Constraints`.
+
+    Raises
+    ------
+    InputError
+        A node set that the model does not have.
+    """
+    X = np.asarray(model.X, float)
+    n = X.shape[0]
+    h = np.asarray(model.spacing, float)
+    vol = float(np.prod(h))
+    bnd_area = _boundary_area(faces, n)
+    names, pts, nodes, wts, masks, targets, groups = [], [], [], [], [], [], []
+    for b, bc in enumerate(bcs):
+        name = bc_name(bc, b)
+        comps, values = bc.components()
+        mask = np.zeros(3, bool)
+        mask[comps] = True
+        target = np.zeros(3)
+        target[comps] = values
+        if bc.point is not None:
+            p = np.asarray(bc.point, float)
+            idx = np.array([int(np.argmin(np.sum((X - p) ** 2, axis=1)))])
+            where = X[idx]
+            w = np.full(1, vol ** (2.0 / 3.0))
+        else:
+            if bc.nodes not in model.sets:
+                avail = ", ".join(sorted(model.sets)) or "none"
+                raise InputError(f"solve.boundary_conditions[{b}].nodes: node set {bc.nodes!r} is not in the model (available: {avail})")
+            idx = np.unique(np.asarray(model.sets[bc.nodes], np.int64))
+            if idx.size and (idx.min() < 0 or idx.max() >= n):
+                raise InputError(f"model set {bc.nodes!r}: node index out of range 0..{n - 1}")
+            if idx.size == 0:
+                _LOG.warning("boundary condition %d: node set %r is empty; it constrains nothing", b, bc.nodes)
+            where = X[idx].copy()
+            if bc.nodes in END_SETS:
+                k, s = END_SETS[bc.nodes]
+                w = np.full(idx.size, vol / h[k])
+                if at == "auto":
+                    face = faces.plus[k, idx] if s > 0 else faces.minus[k, idx]
+                    on_end = faces.boundary[face]
+                    where[on_end, k] += s * h[k] / 2
+            else:
+                w = bnd_area[idx].copy()
+                w[w == 0] = vol ** (2.0 / 3.0)
+        names.append(name)
+        pts.append(where)
+        nodes.append(idx)
+        wts.append(w)
+        masks.append(np.broadcast_to(mask, (idx.size, 3)))
+        targets.append(np.broadcast_to(target, (idx.size, 3)))
+        groups.append(np.full(idx.size, b))
+    return (names, np.concatenate(pts).reshape(-1, 3), np.concatenate(nodes).astype(np.int64), np.concatenate(wts),
+            np.concatenate(masks).reshape(-1, 3), np.concatenate(targets).reshape(-1, 3), np.concatenate(groups))
+
+
+def build_constraints(model, bcs: list[BoundaryCondition], faces: Faces, support, beta: float, *, kernel="cubic",
+                      order=1, support_shape="box", at: str = "auto") -> Constraints:
+    """Constraint points with their shape functions Ψ(x_c) and the penalty number β (N/cm³)."""
+    from ..rk import shape_functions
+
+    names, pts, node, w, mask, target, group = constraint_points(model, bcs, faces, at=at)
+    psi = sp.csr_matrix(shape_functions(np.asarray(model.X, float), pts, support, kernel=kernel, order=order,
+                                        support_shape=support_shape)) if len(pts) else sp.csr_matrix((0, model.X.shape[0]))
+    return Constraints(names=names, points=pts, node=node, weight=w, mask=mask, target=target, group=group, psi=psi,
+                       beta=float(beta))

@@ -1,0 +1,228 @@
+"""Configuration of the ``solve`` stage (section ``solve:`` of the YAML file).
+
+Every class is a frozen dataclass validated by :func:`pixmuscle.config.parse_section`; defaults are
+the paper's choices (cubic B-spline kernel, linear basis, a/h = 1.65; Table 1 and 2 material
+constants, with σ_max = 30 N/cm² and λ̂0 = 1.0 from the errata). Example::
+
+    solve:
+      steps: 10
+      activation: {from: 0.0, to: 0.95}
+      boundary_conditions:
+        - {nodes: z_min, fix: [x, y, z]}
+        - {nodes: z_max, displace: {z: 2.0}}
+        - {nodes: bone_surface, fix: [x, y]}
+
+Units: cm, N, N/cm².
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import field
+from typing import Literal, Optional
+
+AXES = ("x", "y", "z")
+
+
+@dataclasses.dataclass(frozen=True)
+class BoundaryCondition:
+    """One essential boundary condition, imposed by the penalty method (paper eqs. 9–11).
+
+    Exactly one of ``nodes`` (a node-set name of the model, e.g. ``z_min``) and ``point``
+    (coordinates in cm; the node nearest to it is constrained) must be given. Each component is
+    free unless listed in ``fix`` (displacement 0) or ``displace`` (prescribed displacement in cm,
+    reached at the last load step and ramped linearly over the steps).
+    """
+
+    nodes: Optional[str] = field(default=None, metadata={"doc": "name of a node set of the model (z_min, z_max, bone_surface, ...)"})
+    point: Optional[tuple[float, ...]] = field(default=None, metadata={"doc": "[x, y, z] in cm: constrain the node nearest to this point"})
+    fix: list[Literal["x", "y", "z"]] = field(default_factory=list, metadata={"doc": "components held at zero displacement"})
+    displace: dict[str, float] = field(default_factory=dict, metadata={"doc": "prescribed displacement per component, cm (final value)"})
+    name: Optional[str] = field(default=None, metadata={"doc": "name of the reaction-force entry (default: the set name, or point<i>)"})
+
+    def __post_init__(self):
+        if (self.nodes is None) == (self.point is None):
+            raise ValueError("a boundary condition needs exactly one of 'nodes' (a node-set name) or 'point' ([x, y, z] cm)")
+        if self.point is not None and len(self.point) != 3:
+            raise ValueError(f"'point' must have 3 coordinates [x, y, z] (cm), got {len(self.point)}")
+        bad = [k for k in self.displace if k not in AXES]
+        if bad:
+            raise ValueError(f"'displace' keys must be x, y or z, got {bad[0]!r}")
+        both = sorted(set(self.fix) & set(self.displace))
+        if both:
+            raise ValueError(f"component {both[0]!r} is both fixed and displaced")
+        if len(set(self.fix)) != len(self.fix):
+            raise ValueError(f"'fix' lists a component twice: {self.fix}")
+        if not self.fix and not self.displace:
+            raise ValueError("a boundary condition must fix or displace at least one component")
+
+    def components(self) -> tuple[list[int], list[float]]:
+        """Constrained component indices (0..2) and their final prescribed values (cm)."""
+        comps, values = [], []
+        for i, a in enumerate(AXES):
+            if a in self.fix:
+                comps.append(i)
+                values.append(0.0)
+            elif a in self.displace:
+                comps.append(i)
+                values.append(float(self.displace[a]))
+        return comps, values
+
+
+@dataclasses.dataclass(frozen=True)
+class MuscleParams:
+    """Transversely isotropic muscle (paper eqs. 22–26, Table 2 as corrected in the errata), N/cm²."""
+
+    C10: float = 6.43
+    C01: float = -3.8
+    C20: float = 0.94
+    C02: float = 0.0005
+    C11: float = -0.0043
+    K: float = field(default=5000.0, metadata={"gt": 0, "doc": "bulk modulus, N/cm²"})
+    sigma_max: float = field(default=30.0, metadata={"range": (0.0, None), "doc": "maximum isometric fibre stress, N/cm²"})
+    lambda_opt: float = field(default=1.0, metadata={"gt": 0, "doc": "optimal fibre stretch λ̂0 (1.0: image configuration at optimal length)"})
+    gamma1: float = 0.05
+    gamma2: float = 6.6
+
+
+@dataclasses.dataclass(frozen=True)
+class ConnectiveTissueParams:
+    """Cubic isotropic hyperelastic model (paper eq. 27, Table 1), N/cm²."""
+
+    C10: float = 30.0
+    C20: float = 80.0
+    C30: float = 800.0
+    K: float = field(default=50000.0, metadata={"gt": 0, "doc": "bulk modulus, N/cm²"})
+
+
+@dataclasses.dataclass(frozen=True)
+class FatParams:
+    """Cubic isotropic model for fat: Table 1 (ten times softer than connective tissue), N/cm²."""
+
+    C10: float = 3.0
+    C20: float = 8.0
+    C30: float = 80.0
+    K: float = field(default=5000.0, metadata={"gt": 0, "doc": "bulk modulus, N/cm²"})
+
+
+@dataclasses.dataclass(frozen=True)
+class MaterialsConfig:
+    """Material constants per tissue (N/cm²)."""
+
+    muscle: MuscleParams = field(default_factory=MuscleParams)
+    connective_tissue: ConnectiveTissueParams = field(default_factory=ConnectiveTissueParams)
+    fat: FatParams = field(default_factory=FatParams)
+
+
+@dataclasses.dataclass(frozen=True)
+class SupportConfig:
+    """RK shape functions (paper §2 and §5): kernel, basis order and support a = (a/h)·spacing per axis."""
+
+    kernel: Literal["tent", "cubic", "quartic", "quintic"] = "cubic"
+    order: int = field(default=1, metadata={"range": (1, 2), "doc": "order n of the complete monomial basis"})
+    a_over_h: tuple[float, ...] = field(default=(1.65, 1.65, 1.65), metadata={"gt": 0, "doc": "normalised support a/h per axis (x, y, z)"})
+    shape: Literal["box", "sphere"] = field(default="box", metadata={"doc": "tensor-product (box) or radial (sphere) kernel"})
+
+    def __post_init__(self):
+        if len(self.a_over_h) != 3:
+            raise ValueError(f"support.a_over_h must have 3 values (x, y, z), got {len(self.a_over_h)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class StabilizationConfig:
+    """Stabilisation of the nodal integration (see :mod:`pixmuscle.mechanics.stabilization`)."""
+
+    method: Literal["nsni", "none"] = field(default="nsni", metadata={"doc": "nsni: naturally stabilised nodal integration (Hillman & Chen 2016); none: plain SCNI"})
+    coefficient: float = field(default=1.0, metadata={"range": (0.0, None), "doc": "scale of the stabilisation term (1 = Taylor-expansion value)"})
+    modulus: Literal["shear", "tangent"] = field(default="shear", metadata={"doc": "shear: 2μ₀·I (no volumetric locking); tangent: full reference tangent A(F = I)"})
+
+
+@dataclasses.dataclass(frozen=True)
+class PenaltyConfig:
+    """Penalty number β of the essential boundary conditions (paper eq. 9)."""
+
+    factor: float = field(default=1.0e3, metadata={"gt": 0, "doc": "β = factor · (largest reference tangent modulus) / (smallest spacing)"})
+    beta: Optional[float] = field(default=None, metadata={"gt": 0, "doc": "explicit β in N/cm³ (overrides factor)"})
+    at: Literal["auto", "nodes"] = field(default="auto", metadata={"doc": "auto: end sets (x_min..z_max) are constrained on their end faces, other sets at the nodes; nodes: always at the nodes"})
+
+
+@dataclasses.dataclass(frozen=True)
+class NewtonConfig:
+    """Newton–Raphson iteration per load step."""
+
+    max_iterations: int = field(default=25, metadata={"range": (1, None)})
+    residual_tol: float = field(default=1.0e-8, metadata={"gt": 0, "doc": "‖r‖ ≤ tol · max(‖f_int‖, ‖f_penalty‖)"})
+    energy_tol: float = field(default=1.0e-14, metadata={"gt": 0, "doc": "|Δd·r| ≤ tol · (largest |Δd·r| of the step)"})
+    max_cutbacks: int = field(default=6, metadata={"range": (0, None), "doc": "halvings of the load increment before giving up"})
+    line_search: bool = True
+    max_line_search: int = field(default=8, metadata={"range": (0, None)})
+
+
+@dataclasses.dataclass(frozen=True)
+class LinearSolverConfig:
+    """Linear solver backend (:mod:`pixmuscle.mechanics.linsolve`)."""
+
+    backend: Literal["auto", "direct", "cg_amg"] = "auto"
+    auto_direct_max_dofs: int = field(default=90000, metadata={"range": (0, None), "doc": "auto: direct solver up to this many unknowns (3 per node), cg_amg above"})
+    rtol: float = field(default=1.0e-10, metadata={"gt": 0, "doc": "relative residual of the Krylov iterations"})
+    reuse_factorization: bool = field(default=True, metadata={"doc": "direct: keep the LU factors and precondition GMRES with them until it needs many iterations"})
+    maxiter: int = field(default=2000, metadata={"range": (1, None)})
+
+
+def _default_bcs() -> list:
+    # paper Example 2: both ends fixed, bone surface fixed in the cross-sectional plane
+    return [
+        BoundaryCondition(nodes="z_min", fix=["x", "y", "z"]),
+        BoundaryCondition(nodes="z_max", fix=["x", "y", "z"]),
+        BoundaryCondition(nodes="bone_surface", fix=["x", "y"]),
+    ]
+
+
+@dataclasses.dataclass(frozen=True)
+class SolveConfig:
+    """Section ``solve``: load steps, activation ramp, boundary conditions and numerics."""
+
+    steps: int = field(default=10, metadata={"range": (1, None), "doc": "number of load steps"})
+    activation: dict[str, float] = field(
+        default_factory=lambda: {"from": 0.0, "to": 1.0},
+        metadata={"doc": "{from: α0, to: α1}: muscle activation ramped linearly over the steps (0..1)"},
+    )
+    boundary_conditions: list[BoundaryCondition] = field(default_factory=_default_bcs)
+    materials: MaterialsConfig = field(default_factory=MaterialsConfig)
+    support: SupportConfig = field(default_factory=SupportConfig)
+    stabilization: StabilizationConfig = field(default_factory=StabilizationConfig)
+    penalty: PenaltyConfig = field(default_factory=PenaltyConfig)
+    newton: NewtonConfig = field(default_factory=NewtonConfig)
+    solver: LinearSolverConfig = field(default_factory=LinearSolverConfig)
+
+    def __post_init__(self):
+        act = dict(self.activation)
+        bad = [k for k in act if k not in ("from", "to")]
+        if bad:
+            raise ValueError(f"activation: unknown key {bad[0]!r}; expected 'from' and 'to'")
+        act.setdefault("from", 0.0)
+        act.setdefault("to", 1.0)
+        for k, v in act.items():
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= float(v) <= 1.0:
+                raise ValueError(f"activation.{k}: expected a number in [0, 1], got {v!r}")
+        object.__setattr__(self, "activation", {"from": float(act["from"]), "to": float(act["to"])})
+        for i, bc in enumerate(self.boundary_conditions):
+            if not isinstance(bc, BoundaryCondition):
+                raise ValueError(f"boundary_conditions[{i}]: expected a mapping")
+
+    @property
+    def alpha_from(self) -> float:
+        return self.activation["from"]
+
+    @property
+    def alpha_to(self) -> float:
+        return self.activation["to"]
+
+
+def bc_name(bc: BoundaryCondition, index: int) -> str:
+    """Name of the reaction entry of a boundary condition: ``name``, else the set name, else ``point<index>``."""
+    if bc.name:
+        return bc.name
+    if bc.nodes is not None:
+        return bc.nodes
+    return f"point{index}"

@@ -1,0 +1,247 @@
+"""Newton–Raphson with line search, and incremental loading with step cutback (paper eqs. 11, 18).
+
+The solver works on any *system* object with
+
+``evaluate(d, t, alpha) -> State``
+    residual r = f_ext − f_int (N, shape (N, 3)) and force scale at coefficients ``d`` (cm), load
+    factor ``t`` (0..1, ramp of the prescribed displacements) and activation ``alpha``; raises
+    :class:`~pixmuscle.errors.SolverError` for inverted material points (det F ≤ 0);
+``stiffness(state) -> sparse matrix``
+    consistent tangent K = −∂r/∂d (3N × 3N);
+``energy(state) -> float``
+    total potential Π (N·cm), used by the line search.
+
+Convergence of a load step needs both (tolerances in ``solve.newton``)
+
+    ‖r‖ ≤ residual_tol · max(‖f_int‖, ‖f_pen‖) + atol          (relative residual)
+    |Δd·r| ≤ energy_tol · max_iterations-of-the-step |Δd·r|      (energy norm of the last update)
+
+The force scale in the first test is the size of the internal (= penalty, at equilibrium) forces,
+not the first residual of the step, which is dominated by the penalty forces of the new prescribed
+displacements and would make the test far too loose.
+
+Line search: the full Newton step is accepted when it lowers ‖r‖ or Π; otherwise (and when a trial
+state inverts a material point) the step is halved up to ``max_line_search`` times. A step that
+still fails, a non-finite residual, or no convergence in ``max_iterations`` makes the load step
+fail; :func:`load_steps` then halves the load increment (cutback) and retries, up to
+``max_cutbacks`` times, and finally raises :class:`~pixmuscle.errors.SolverError` naming the step,
+α and the last residual.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Any, Callable
+
+import numpy as np
+
+from ..errors import SolverError
+from .config import NewtonConfig
+
+_LOG = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass
+class NewtonRow:
+    """One Newton iteration: residual before the update, energy norm and line-search factor of the update."""
+
+    step: int
+    load_factor: float
+    iteration: int
+    residual_norm: float
+    relative_residual: float
+    energy_norm: float
+    line_search: float
+
+
+@dataclasses.dataclass
+class NewtonResult:
+    state: Any
+    converged: bool
+    iterations: int
+    rows: list
+    relative_residual: float
+    reason: str = ""
+
+
+def _norm(r) -> float:
+    return float(np.sqrt(np.sum(np.square(r))))
+
+
+def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0) -> NewtonResult:
+    """Newton iterations from ``state`` at fixed load factor and activation.
+
+    Parameters
+    ----------
+    system
+        See the module docstring.
+    state
+        Evaluated start state (``system.evaluate(d0, t, alpha)``).
+    cfg : NewtonConfig
+    linsolver : LinearSolver
+    step : int
+        Load-step number, for the log.
+
+    Returns
+    -------
+    NewtonResult
+        ``converged`` false (with ``reason``) instead of raising when the iteration fails.
+    """
+    rows = []
+    E_ref = 0.0
+    en_last = np.inf
+    rel = np.inf
+    t, alpha = state.t, state.alpha
+    for it in range(cfg.max_iterations + 1):
+        rn = _norm(state.r)
+        scale = state.force_scale
+        rel = rn / scale if scale > 0 else (0.0 if rn == 0 else np.inf)
+        if not np.isfinite(rn):
+            return NewtonResult(state, False, it, rows, rel, "non-finite residual")
+        res_ok = rn <= cfg.residual_tol * scale + system.atol
+        if res_ok and (it == 0 or en_last <= cfg.energy_tol * E_ref):
+            rows.append(NewtonRow(step, t, it, rn, rel, 0.0, 0.0))
+            return NewtonResult(state, True, it, rows, rel)
+        if it == cfg.max_iterations:
+            rows.append(NewtonRow(step, t, it, rn, rel, 0.0, 0.0))
+            break
+        try:
+            linsolver.factorize(system.stiffness(state))
+            dd = linsolver.solve(state.r.reshape(-1)).reshape(state.d.shape)
+        except SolverError as exc:
+            rows.append(NewtonRow(step, t, it, rn, rel, 0.0, 0.0))
+            return NewtonResult(state, False, it, rows, rel, f"linear solver: {exc}")
+        en = abs(float(np.vdot(dd, state.r)))
+        E_ref = max(E_ref, en)
+        s, trial, why = 1.0, None, ""
+        pi0 = None
+        for _ in range(cfg.max_line_search + 1 if cfg.line_search else 1):
+            try:
+                cand = system.evaluate(state.d + s * dd, t, alpha)
+            except SolverError as exc:
+                why = str(exc)
+                s *= 0.5
+                continue
+            rc = _norm(cand.r)
+            if not np.isfinite(rc):
+                why = "non-finite residual"
+                s *= 0.5
+                continue
+            if not cfg.line_search or rc <= rn:
+                trial = cand
+                break
+            if pi0 is None:
+                pi0 = system.energy(state)
+            if system.energy(cand) < pi0:
+                trial = cand
+                break
+            why = f"no decrease of residual or energy (residual {rc:.3g} > {rn:.3g})"
+            s *= 0.5
+        if trial is None:
+            rows.append(NewtonRow(step, t, it, rn, rel, en, 0.0))
+            return NewtonResult(state, False, it, rows, rel, f"line search failed: {why}")
+        rows.append(NewtonRow(step, t, it, rn, rel, en, s))
+        en_last = s * en
+        state = trial
+    return NewtonResult(state, False, cfg.max_iterations, rows, rel,
+                        f"no convergence in {cfg.max_iterations} iterations")
+
+
+def _predict(system, d, last, dt, t, alpha):
+    """Start state of a load increment: linear extrapolation of the last converged increment
+    (scaled to ``dt``), or ``d`` itself when there is none or the extrapolation inverts a point."""
+    if last is not None and dt > 0:
+        try:
+            return system.evaluate(d + (dt / last[1]) * last[0], t, alpha)
+        except SolverError:
+            pass
+    return system.evaluate(d, t, alpha)
+
+
+@dataclasses.dataclass
+class StepRecord:
+    """Converged state of one load step and its Newton log."""
+
+    step: int
+    t: float
+    alpha: float
+    state: Any
+    iterations: int
+    cutbacks: int
+    rows: list
+
+
+def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: NewtonConfig, linsolver, *,
+               on_step: Callable[[StepRecord], None] | None = None, d0: np.ndarray | None = None) -> list[StepRecord]:
+    """Incremental loading over ``n_steps`` steps with cutback.
+
+    Step k (k = 0..n_steps) reaches load factor t_k = k / n_steps and activation
+    α_k = α_from + t_k (α_to − α_from). Step 0 solves the initial state (trivial unless α_from > 0).
+    A step whose Newton iteration fails is retried with the increment halved (sub-steps), up to
+    ``cfg.max_cutbacks`` halvings per step.
+
+    Parameters
+    ----------
+    system
+        See the module docstring (needs ``n_nodes``).
+    on_step : callable, optional
+        Called with each converged :class:`StepRecord` (progress display, storage).
+
+    Returns
+    -------
+    list of StepRecord
+        One per step, 0..n_steps.
+
+    Raises
+    ------
+    SolverError
+        A step failed after all cutbacks; ``exc.records`` holds the converged steps before it.
+    """
+    def alpha_of(t):
+        return alpha_from + t * (alpha_to - alpha_from)
+
+    d = np.zeros((system.n_nodes, 3)) if d0 is None else np.asarray(d0, float).copy()
+    records: list[StepRecord] = []
+    t_done = 0.0
+    last = None  # (increment of d, increment of t) of the last converged increment, for the predictor
+    for k in range(n_steps + 1):
+        t_target = k / n_steps
+        dt = t_target - t_done
+        cut = 0
+        rows: list = []
+        iters = 0
+        first = True
+        while first or t_done < t_target - 1e-12:
+            first = False
+            t_try = min(t_done + dt, t_target) if dt > 0 else t_target
+            try:
+                state = _predict(system, d, last, t_try - t_done, t_try, alpha_of(t_try))
+                res = newton(system, state, cfg, linsolver, step=k)
+            except SolverError as exc:  # inverted already at the start of the increment
+                res = NewtonResult(None, False, 0, [], np.inf, str(exc))
+            rows.extend(res.rows)
+            iters += res.iterations
+            if res.converged:
+                if t_try > t_done:
+                    last = (res.state.d - d, t_try - t_done)
+                d = res.state.d
+                t_done = t_try
+                state = res.state
+                continue
+            cut += 1
+            _LOG.info("load step %d: Newton failed at load factor %.4g (%s); cutting back", k, t_try, res.reason)
+            if cut > cfg.max_cutbacks or dt <= 0:
+                exc = SolverError(
+                    f"load step {k} of {n_steps} (α = {alpha_of(t_try):.4g}, load factor {t_try:.4g}) did not converge "
+                    f"after {cut - 1} cutbacks: {res.reason}; last relative residual {res.relative_residual:.3g}"
+                )
+                exc.records = records
+                exc.rows = rows
+                raise exc
+            dt /= 2.0
+        rec = StepRecord(step=k, t=t_target, alpha=alpha_of(t_target), state=state, iterations=iters, cutbacks=cut, rows=rows)
+        records.append(rec)
+        if on_step is not None:
+            on_step(rec)
+    return records

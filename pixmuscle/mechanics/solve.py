@@ -1,0 +1,343 @@
+"""Total-Lagrangian finite-strain meshfree solve of a pixel-point model (paper §3 and §5).
+
+Pipeline of :func:`solve`:
+
+1. RK shape functions (cubic B-spline box kernel, linear basis, a = (a/h)·spacing per axis) at the
+   unique cell faces → SCNI smoothed gradient operators G_k (:mod:`.scni`);
+2. materials per node from the tissue code (muscle: transversely isotropic with per-node fibre and
+   activation α; connective tissue and fat: cubic isotropic), constants from ``solve.materials``;
+3. constant parts of the stiffness: NSNI stabilisation (:mod:`.stabilization`) and penalty
+   (:mod:`.boundary`), assembled once on the fixed block pattern (:mod:`.assembly`);
+4. incremental loading: α ramped from ``activation.from`` to ``activation.to`` and prescribed
+   displacements ramped from 0, Newton–Raphson per step (:mod:`.newton`), linear solves by the
+   configured backend (:mod:`.linsolve`);
+5. per converged step: RK-interpolated nodal displacements u(X_I) = Σ_J Ψ_J(X_I) d_J,
+   reactions per constrained set, Cauchy stress at the nodes and its largest principal value.
+
+At each node L (one integration cell): F_L = I + Σ_I d_I ⊗ b̃_I(X_L) (eq. 16), P_L from the
+node's material, f_int,I = Σ_L V_L P_L b̃_I(X_L) (eq. 19) and K = Σ_L V_L B̃_Lᵀ A_L B̃_L (eqs. 17–20).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..errors import InputError, SolverError
+from ..model.model import Model
+from ..model.tissues import CONNECTIVE_TISSUE, FAT, MUSCLE, NODE_TISSUES, TISSUE_NAMES
+from . import newton as _newton
+from .assembly import Assembler, support_pattern
+from .boundary import SIGN_CONVENTION, Constraints, build_constraints, penalty_number
+from .config import SolveConfig
+from .linsolve import make_solver
+from .results import Results, cauchy_voigt, max_principal
+from .scni import SCNI, build_scni, face_incidence, support_radius
+from .stabilization import stabilization_stiffness
+
+_LOG = logging.getLogger(__name__)
+
+
+def make_materials(cfg_materials) -> dict:
+    """Material object per tissue code from ``solve.materials`` (paper Tables 1 and 2)."""
+    from .materials import material_from_config
+
+    return {
+        MUSCLE: material_from_config("muscle", dataclasses.asdict(cfg_materials.muscle)),
+        CONNECTIVE_TISSUE: material_from_config("connective_tissue", dataclasses.asdict(cfg_materials.connective_tissue)),
+        FAT: material_from_config("fat", dataclasses.asdict(cfg_materials.fat)),
+    }
+
+
+@dataclasses.dataclass
+class State:
+    """Mechanical state at coefficients d (cm), load factor t and activation α."""
+
+    d: np.ndarray
+    t: float
+    alpha: float
+    F: np.ndarray
+    P: np.ndarray
+    A: np.ndarray | None
+    r: np.ndarray
+    force_scale: float
+
+
+class MechanicalSystem:
+    """Discrete equilibrium equations of a pixel-point model (see the module docstring).
+
+    Parameters
+    ----------
+    model : Model
+    scni : SCNI
+    materials : dict tissue code → material
+    constraints : Constraints
+    assembler : Assembler
+    stab_data : (nnzb, 3, 3) float or None
+        Constant NSNI stiffness blocks (N/cm).
+    """
+
+    def __init__(self, model: Model, scni: SCNI, materials: dict, constraints: Constraints, assembler: Assembler,
+                 stab_data: np.ndarray | None):
+        self.model = model
+        self.scni = scni
+        self.n_nodes = model.n_nodes
+        self.constraints = constraints
+        self.assembler = assembler
+        self.fiber = np.asarray(model.fiber, float)
+        self.groups = []
+        tissue = np.asarray(model.tissue)
+        for code in NODE_TISSUES:
+            idx = np.flatnonzero(tissue == code)
+            if idx.size:
+                self.groups.append((code, materials[code], idx))
+        self.g = assembler.on_support(scni.G)
+        pen = assembler.zeros()
+        for j, Kj in enumerate(constraints.stiffness(self.n_nodes)):
+            assembler.align_scalar(Kj, j, j, pen)
+        self.stab_data = stab_data
+        self.K_stab = assembler.matrix(stab_data).tocsr() if stab_data is not None else None
+        self.base = pen if stab_data is None else pen + stab_data
+        self.atol = 0.0
+        self.timings = {"material_s": 0.0, "assembly_s": 0.0, "n_evaluate": 0, "n_assembly": 0}
+
+    def _material_kw(self, code, idx, alpha):
+        if code == MUSCLE:
+            return {"fiber": self.fiber[idx], "activation": alpha}
+        return {}
+
+    def material_response(self, F: np.ndarray, alpha: float, tangent: bool = True):
+        """P (N, 3, 3) and, if ``tangent``, A (N, 3, 3, 3, 3) per node, grouped by material."""
+        n = F.shape[0]
+        P = np.empty((n, 3, 3))
+        A = np.empty((n, 3, 3, 3, 3)) if tangent else None
+        for code, mat, idx in self.groups:
+            kw = self._material_kw(code, idx, alpha)
+            if tangent:
+                P[idx], A[idx] = mat.stress_tangent(F[idx], **kw)
+            else:
+                P[idx] = mat.stress(F[idx], **kw)
+        return P, A
+
+    def evaluate(self, d: np.ndarray, t: float, alpha: float) -> State:
+        """Residual r = −(f_int + f_stab + f_pen) at coefficients d; raises SolverError on inversion."""
+        t0 = time.perf_counter()
+        F = self.scni.deformation_gradient(d)
+        P, A = self.material_response(F, alpha, tangent=True)
+        fi = self.scni.internal_force(P)
+        if self.K_stab is not None:
+            fi = fi + (self.K_stab @ d.reshape(-1)).reshape(-1, 3)
+        fp = self.constraints.force(d, t)
+        r = -(fi + fp)
+        scale = max(float(np.linalg.norm(fi)), float(np.linalg.norm(fp)))
+        self.timings["material_s"] += time.perf_counter() - t0
+        self.timings["n_evaluate"] += 1
+        return State(d=d, t=t, alpha=alpha, F=F, P=P, A=A, r=r, force_scale=scale)
+
+    def stiffness(self, state: State) -> sp.bsr_matrix:
+        """Consistent tangent K = Σ_L V_L B̃ᵀ A_L B̃ + K_stab + K_pen (BSR, 3N × 3N), N/cm."""
+        t0 = time.perf_counter()
+        data = self.base.copy()
+        self.assembler.fill(self.g, state.A, self.scni.volume, out=data)
+        K = self.assembler.matrix(data)
+        self.timings["assembly_s"] += time.perf_counter() - t0
+        self.timings["n_assembly"] += 1
+        return K
+
+    def strain_energy(self, F: np.ndarray, alpha: float) -> float:
+        """Σ_L V_L W(F_L), N·cm."""
+        W = np.empty(F.shape[0])
+        for code, mat, idx in self.groups:
+            W[idx] = mat.energy(F[idx], **self._material_kw(code, idx, alpha))
+        return float(np.dot(self.scni.volume, W))
+
+    def energy(self, state: State) -> float:
+        """Total potential Π = Σ V W + ½ dᵀ K_stab d + Π_pen, N·cm."""
+        e = self.strain_energy(state.F, state.alpha) + self.constraints.energy(state.d, state.t)
+        if self.K_stab is not None:
+            dv = state.d.reshape(-1)
+            e += 0.5 * float(dv @ (self.K_stab @ dv))
+        return e
+
+    def cauchy(self, state: State) -> np.ndarray:
+        """Cauchy stress at the nodes, (N, 3, 3), N/cm²."""
+        s = np.empty((self.n_nodes, 3, 3))
+        for code, mat, idx in self.groups:
+            s[idx] = mat.cauchy(state.F[idx], **self._material_kw(code, idx, state.alpha))
+        return s
+
+
+def check_model(model: Model) -> None:
+    """Validate the arrays of a model before solving (InputError naming what is wrong)."""
+    n = model.n_nodes
+    if n == 0:
+        raise InputError("model has no nodes")
+    for name, arr, shape in (("X", model.X, (n, 3)), ("ijk", model.ijk, (n, 3)), ("tissue", model.tissue, (n,)),
+                             ("fiber", model.fiber, (n, 3))):
+        if np.shape(arr) != shape:
+            raise InputError(f"model /nodes/{name} has shape {np.shape(arr)}, expected {shape}")
+    if not np.all(np.isfinite(model.X)):
+        raise InputError("model /nodes/X holds non-finite coordinates")
+    h = np.asarray(model.spacing, float)
+    if h.shape != (3,) or not np.all(h > 0):
+        raise InputError(f"model /grid/spacing must be 3 positive numbers (cm), got {model.spacing}")
+    bad = ~np.isin(model.tissue, NODE_TISSUES)
+    if bad.any():
+        raise InputError(f"model /nodes/tissue: {int(bad.sum())} nodes have codes outside {NODE_TISSUES} "
+                         f"({', '.join(TISSUE_NAMES[c] for c in NODE_TISSUES)})")
+    expect = np.asarray(model.origin, float) + np.asarray(model.ijk, float) * h
+    if not np.allclose(expect, model.X, atol=1e-6 * float(h.min())):
+        raise InputError("model /nodes/X is not origin + ijk * spacing: the cells of nodal integration need a "
+                         "grid-aligned model (docs/architecture.md, model frame)")
+    mus = model.tissue == MUSCLE
+    if mus.any():
+        norm = np.linalg.norm(model.fiber[mus], axis=1)
+        if not np.all(np.abs(norm - 1.0) < 1e-3):
+            raise InputError(f"model /nodes/fiber: {int(np.sum(np.abs(norm - 1.0) >= 1e-3))} muscle nodes have no unit "
+                             "fibre direction")
+
+
+def build_system(model: Model, cfg: SolveConfig) -> tuple[MechanicalSystem, dict]:
+    """Assemble everything that does not change during the solve.
+
+    Returns
+    -------
+    system : MechanicalSystem
+    info : dict
+        β, support, pattern size and set-up timings.
+    """
+    check_model(model)
+    info = {}
+    t0 = time.perf_counter()
+    sup = support_radius(model.spacing, cfg.support.a_over_h)
+    stab = cfg.stabilization.method != "none" and cfg.stabilization.coefficient > 0
+    rk_kw = dict(kernel=cfg.support.kernel, order=cfg.support.order, support_shape=cfg.support.shape)
+    scni = build_scni(model.X, model.ijk, model.spacing, sup, face_gradients=stab, **rk_kw)
+    info["scni_s"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    assembler = Assembler(support_pattern(face_incidence(scni.faces, scni.volume), scni.psi_faces))
+    info["pattern_s"] = time.perf_counter() - t1
+    materials = make_materials(cfg.materials)
+    ident = np.broadcast_to(np.eye(3), (model.n_nodes, 3, 3))
+    present = [c for c in NODE_TISSUES if np.any(model.tissue == c)]
+    A0 = np.empty((model.n_nodes, 3, 3, 3, 3))
+    for c in present:
+        idx = np.flatnonzero(model.tissue == c)
+        kw = {"fiber": model.fiber[idx], "activation": 0.0} if c == MUSCLE else {}
+        A0[idx] = materials[c].stress_tangent(np.ascontiguousarray(ident[idx]), **kw)[1]
+    t2 = time.perf_counter()
+    stab_data = None
+    if stab:
+        stab_data = stabilization_stiffness(scni, assembler, A0, coefficient=cfg.stabilization.coefficient,
+                                            modulus=cfg.stabilization.modulus)
+    info["stabilization_s"] = time.perf_counter() - t2
+    beta = cfg.penalty.beta if cfg.penalty.beta is not None else penalty_number(A0, model.spacing, cfg.penalty.factor)
+    constraints = build_constraints(model, list(cfg.boundary_conditions), scni.faces, sup, beta, at=cfg.penalty.at, **rk_kw)
+    t3 = time.perf_counter()
+    system = MechanicalSystem(model, scni, materials, constraints, assembler, stab_data)
+    info["penalty_s"] = time.perf_counter() - t3
+    # absolute residual floor: round-off level of the penalty forces
+    system.atol = 1e-13 * beta * float(np.prod(model.spacing)) * max(1, model.n_nodes) ** 0.5
+    info.update(beta=beta, support_cm=sup.tolist(), nnz_blocks=assembler.nnzb, nnz=assembler.nnz,
+                nnz_per_row=assembler.nnz / (3 * model.n_nodes), n_nodes=model.n_nodes,
+                n_constraint_points=int(constraints.points.shape[0]), build_s=time.perf_counter() - t0)
+    if not constraints.points.shape[0]:
+        _LOG.warning("no boundary condition constrains any node: the stiffness is singular")
+    return system, info
+
+
+def _psi_nodes(model: Model, cfg: SolveConfig) -> sp.csr_matrix:
+    from ..rk import shape_functions
+
+    sup = support_radius(model.spacing, cfg.support.a_over_h)
+    return sp.csr_matrix(shape_functions(model.X, model.X, sup, kernel=cfg.support.kernel, order=cfg.support.order,
+                                         support_shape=cfg.support.shape))
+
+
+def solve(model: Model, cfg: SolveConfig | None = None, progress=None) -> Results:
+    """Solve the finite-strain equilibrium of a pixel-point model over the load steps.
+
+    Parameters
+    ----------
+    model : Model
+    cfg : SolveConfig, optional
+        Defaults: paper settings (see :mod:`pixmuscle.mechanics.config`).
+    progress : object with ``advance(n=1, **fields)``, optional
+        Advanced once per converged load step with α and the final Newton residual.
+
+    Returns
+    -------
+    Results
+        Every step 0..S (status ``"complete"``).
+
+    Raises
+    ------
+    InputError
+        Bad model or configuration (e.g. an unknown node set).
+    SolverError
+        A load step failed after all cutbacks. ``exc.results`` holds a :class:`Results` with the
+        converged steps and ``status = "failed: ..."``.
+    """
+    cfg = cfg or SolveConfig()
+    t_start = time.perf_counter()
+    system, info = build_system(model, cfg)
+    psi_nodes = _psi_nodes(model, cfg)
+    linsolver = make_solver(cfg.solver.backend, model.X, auto_direct_max_dofs=cfg.solver.auto_direct_max_dofs,
+                            rtol=cfg.solver.rtol, maxiter=cfg.solver.maxiter, reuse=cfg.solver.reuse_factorization)
+    info["linear_solver"] = linsolver.name
+    steps: list = []
+    lin_time = {"setup_s": 0.0, "solve_s": 0.0, "iterations": []}
+
+    class _Timed:
+        name = linsolver.name
+
+        def factorize(self, K):
+            t0 = time.perf_counter()
+            linsolver.factorize(K)
+            lin_time["setup_s"] += time.perf_counter() - t0
+
+        def solve(self, r):
+            t0 = time.perf_counter()
+            x = linsolver.solve(r)
+            lin_time["solve_s"] += time.perf_counter() - t0
+            lin_time["iterations"].append(linsolver.info["iterations"])
+            return x
+
+    def on_step(rec):
+        st = rec.state
+        steps.append(dict(
+            alpha=rec.alpha, t=rec.t, iterations=rec.iterations, cutbacks=rec.cutbacks, d=st.d.copy(),
+            u=np.asarray(psi_nodes @ st.d), reaction=system.constraints.reactions(st.d, rec.t),
+            prescribed=system.constraints.prescribed(rec.t), cauchy=cauchy_voigt(system.cauchy(st)), rows=rec.rows,
+        ))
+        steps[-1]["max_principal"] = max_principal(steps[-1]["cauchy"])
+        if progress is not None:
+            last = rec.rows[-1].relative_residual if rec.rows else 0.0
+            progress.advance(1, alpha=float(rec.alpha), residual=float(last))
+
+    status = "complete"
+    error = None
+    try:
+        _newton.load_steps(system, cfg.steps, cfg.alpha_from, cfg.alpha_to, cfg.newton, _Timed(), on_step=on_step)
+    except SolverError as exc:
+        status = f"failed: {exc}"
+        error = exc
+        failed_rows = getattr(exc, "rows", [])
+    else:
+        failed_rows = []
+    info.update(total_s=time.perf_counter() - t_start, linear_setup_s=lin_time["setup_s"],
+                linear_solve_s=lin_time["solve_s"], linear_iterations=lin_time["iterations"],
+                factorizations=int(linsolver.info.get("factorizations", 0)),
+                assembly_s=system.timings["assembly_s"], n_assembly=system.timings["n_assembly"],
+                material_s=system.timings["material_s"], n_evaluate=system.timings["n_evaluate"])
+    results = Results.from_steps(model, steps, failed_rows=failed_rows, status=status, n_steps=cfg.steps,
+                                 constrained=system.constraints.constrained_components(), info=info,
+                                 sign_convention=SIGN_CONVENTION)
+    if error is not None:
+        error.results = results
+        raise error
+    return results

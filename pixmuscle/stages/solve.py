@@ -1,0 +1,71 @@
+"""Stage ``solve``: ``model.h5`` → ``results.h5`` (schema ``pixmuscle.results`` v1, paper §3 and §5)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, Mapping
+
+from ..config import parse_section
+from ..errors import InputError, SolverError
+from ..mechanics.config import SolveConfig
+from ..mechanics.results import save_results
+from ..mechanics.solve import solve
+from ..model.model import load_model
+from ..progress import progress as _progress
+
+_LOG = logging.getLogger(__name__)
+
+
+def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_path: str | Path, progress: Any = None) -> Path:
+    """Solve a model file and write the results file.
+
+    Parameters
+    ----------
+    model_path : path
+        ``model.h5`` (schema ``pixmuscle.model`` v1).
+    cfg : SolveConfig or mapping
+        The ``solve`` section (a mapping is validated with :func:`pixmuscle.config.parse_section`).
+    out_path : path
+        Destination ``results.h5``.
+    progress : object with ``advance(n=1, **fields)``, None or False
+        Progress sink; None (default): a progress bar "load step k/m" showing α and the Newton
+        residual; False: no progress display.
+
+    Returns
+    -------
+    pathlib.Path
+        ``out_path``.
+
+    Raises
+    ------
+    InputError
+        Bad model file or configuration.
+    SolverError
+        A load step failed after all cutbacks. The results file is still written, with the
+        converged steps and ``status = "failed: ..."``, before the error is raised.
+    """
+    if cfg is None:
+        raise InputError("solve: the configuration has no `solve` section")
+    if not isinstance(cfg, SolveConfig):
+        cfg = parse_section(SolveConfig, cfg, "solve")
+    model = load_model(model_path)
+    _LOG.info("solve: %d nodes, %d load steps, activation %.3g → %.3g", model.n_nodes, cfg.steps, cfg.alpha_from, cfg.alpha_to)
+    try:
+        if progress is None:
+            with _progress(cfg.steps + 1, "load step") as bar:
+                results = solve(model, cfg, progress=bar)
+        else:
+            results = solve(model, cfg, progress=progress or None)
+    except SolverError as exc:
+        partial = getattr(exc, "results", None)
+        if partial is not None:
+            save_results(out_path, partial, config=cfg, inputs=[Path(model_path)])
+            _LOG.error("solve failed; converged steps written to %s (status: %s)", out_path, partial.status)
+        raise
+    save_results(out_path, results, config=cfg, inputs=[Path(model_path)])
+    info = results.info
+    _LOG.info("solve: done in %.1f s (build %.1f s, %d assemblies %.1f s, linear solves %.1f s)", info.get("total_s", 0.0),
+              info.get("build_s", 0.0), info.get("n_assembly", 0), info.get("assembly_s", 0.0),
+              info.get("linear_setup_s", 0.0) + info.get("linear_solve_s", 0.0))
+    return Path(out_path)
