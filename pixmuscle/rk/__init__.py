@@ -5,6 +5,7 @@ request, its exact gradients. :func:`kernel` evaluates a 1-D kernel and its deri
 """
 
 from pixmuscle.rk.kernels import KERNELS, SUPPORT_SHAPES, kernel
-from pixmuscle.rk.shape import shape_functions
+from pixmuscle.rk.shape import SingularMomentError, shape_functions
+from pixmuscle.rk.coverage import covering_supports
 
-__all__ = ["KERNELS", "SUPPORT_SHAPES", "kernel", "shape_functions"]
+__all__ = ["KERNELS", "SUPPORT_SHAPES", "SingularMomentError", "covering_supports", "kernel", "shape_functions"]

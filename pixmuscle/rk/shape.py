@@ -247,15 +247,30 @@ def _csr(data, indices, indptr, shape):
     return mat
 
 
+class SingularMomentError(InputError):
+    """Some evaluation points have a singular moment matrix (too few nodes in their support).
+
+    Attributes
+    ----------
+    point_index : ndarray of int64
+        Indices (into ``points``) of the offending points.
+    """
+
+    def __init__(self, message: str, point_index: np.ndarray):
+        super().__init__(message)
+        self.point_index = np.asarray(point_index, dtype=np.int64)
+
+
 def _raise_bad_points(bad, points, n_points, dim, order, m):
     shown = ", ".join("(" + ", ".join(f"{c:.6g}" for c in points[i]) + ")" for i in bad[:5])
     more = " ..." if bad.size > 5 else ""
-    raise InputError(
+    raise SingularMomentError(
         f"RK shape functions: {bad.size} of {n_points} evaluation points have a singular or "
         f"badly conditioned moment matrix (reciprocal condition < {RCOND_MIN:g}): an order-{order} "
         f"basis in {dim}-D needs at least {m} nodes, not all on a lower-degree curve/plane, with "
         f"the point strictly inside their kernel support. Points (cm): {shown}{more}. "
-        f"Enlarge the support a, lower the basis order, or keep the points inside the node cloud."
+        f"Enlarge the support a, lower the basis order, or keep the points inside the node cloud.",
+        bad,
     )
 
 
