@@ -105,8 +105,12 @@ def _parse_subject(raw: dict, name: str, where: str, base_dir: Path, default_out
     )
 
 
-def load_subjects(path: str | Path) -> list[PipelineConfig]:
-    """Read and validate a pipeline YAML; one entry per subject (one for a single-subject config)."""
+def load_subjects(path: str | Path, *, strict: bool = True) -> list:
+    """Read and validate a pipeline YAML; one entry per subject (one for a single-subject config).
+
+    With ``strict=False`` a subject whose own section is invalid (a missing file, a bad key) is
+    returned as a :class:`SubjectError` instead of raising, so a cohort can run the others.
+    """
     path = Path(path)
     raw = read_yaml(path)
     unknown = sorted(set(raw) - _ROOT_KEYS)
@@ -128,12 +132,26 @@ def load_subjects(path: str | Path) -> list[PipelineConfig]:
     for i, s in enumerate(subjects):
         if not isinstance(s, dict) or not isinstance(s.get("name"), str):
             raise InputError(f"{path}: subjects[{i}]: expected a mapping with a 'name' string")
-        bad = sorted(set(s) - (_ROOT_KEYS - {"subjects", "output_dir"}) - {"name"})
-        if bad:
-            raise InputError(f"{path}: subjects[{i}].{bad[0]}: unknown key")
-        merged = _deep_merge(common, {k: v for k, v in s.items() if k != "name"})
-        out.append(_parse_subject(merged, s["name"], f"subjects[{i}].", base_dir, default_out / s["name"]))
+        try:
+            bad = sorted(set(s) - (_ROOT_KEYS - {"subjects", "output_dir"}) - {"name"})
+            if bad:
+                raise InputError(f"{path}: subjects[{i}].{bad[0]}: unknown key")
+            merged = _deep_merge(common, {k: v for k, v in s.items() if k != "name"})
+            out.append(_parse_subject(merged, s["name"], f"subjects[{i}].", base_dir, default_out / s["name"]))
+        except InputError as exc:
+            if strict:
+                raise
+            out.append(SubjectError(s["name"], str(exc), default_out / s["name"]))
     return out
+
+
+@dataclasses.dataclass(frozen=True)
+class SubjectError:
+    """A cohort subject whose configuration could not be validated."""
+
+    name: str
+    error: str
+    output_dir: Path
 
 
 def load_config(path: str | Path) -> PipelineConfig:
@@ -305,11 +323,15 @@ def run_pipeline(path: str | Path, *, force: bool = False, start: Optional[str] 
 
     Returns True when every subject succeeded.
     """
-    subjects = load_subjects(path)
+    subjects = load_subjects(path, strict=False)
     summaries, failures = [], []
     for i, cfg in enumerate(subjects, 1):
         if len(subjects) > 1:
             _LOG.info("subject %d of %d: %s", i, len(subjects), cfg.name)
+        if isinstance(cfg, SubjectError):
+            _LOG.error("subject %s: invalid configuration: %s", cfg.name, cfg.error)
+            failures.append({"name": cfg.name, "error": cfg.error})
+            continue
         try:
             summaries.append(run_subject(cfg, force=force, start=start, until=until))
         except PixmuscleError as exc:

@@ -121,7 +121,23 @@ def generate_samples(outdir="data/synthetic", names=None) -> dict:
     for name in names:
         factory, kwargs = SAMPLES[name]
         out[name] = write_phantom(factory(**kwargs), outdir, name)
+    if names == list(SAMPLES):
+        out["tendon"] = {"labels": write_tendon_labels(outdir)}
     return out
+
+
+def write_tendon_labels(outdir="data/synthetic", h=(0.1, 0.1, 0.5)) -> Path:
+    """Label volume of the paper's Example 1 tendon (tapered prism, 19 cm; label 2 = connective tissue).
+
+    The geometry is :func:`pixmuscle.verify.tendon_geometry.tendon_voxels`, the same one the
+    finite-element reference of ``pixmuscle verify tendon`` meshes.
+    """
+    from pixmuscle.verify.tendon_geometry import tendon_voxels
+
+    mask, affine = tendon_voxels(h=h)
+    path = Path(outdir) / "tendon_labels.nii.gz"
+    save_volume(path, mask.astype(np.int16) * 2, affine, kind="labels")
+    return path
 
 
 def main(argv=None) -> int:
