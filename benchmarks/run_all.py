@@ -10,7 +10,6 @@ Speed and memory targets are checked here and reported, never asserted in the te
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import subprocess
 import sys

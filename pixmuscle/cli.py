@@ -10,8 +10,8 @@ import functools
 import importlib
 import logging
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable, Optional
 
 import typer
 
@@ -153,7 +153,7 @@ def solve(
 def report(
     results: Path = typer.Argument(..., help="Input results.h5."),
     output: Path = typer.Option(Path("report"), "--output", "-o", help="Output folder."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config with a `report` section (optional)."),
+    config: Path | None = typer.Option(None, "--config", "-c", help="YAML config with a `report` section (optional)."),
 ) -> None:
     """Force–activation curves, tissue table, ParaView fields, slice figures, HTML summary."""
     mod = _load("pixmuscle.stages.report")
@@ -167,8 +167,8 @@ def report(
 def run(
     config: Path = typer.Argument(..., help="Pipeline YAML (one subject or a cohort)."),
     force: bool = typer.Option(False, "--force", help="Redo stages even when their inputs are unchanged."),
-    start: Optional[str] = typer.Option(None, "--from", help="First stage: segment, build-model, coarsen, solve, report."),
-    until: Optional[str] = typer.Option(None, "--until", help="Last stage."),
+    start: str | None = typer.Option(None, "--from", help="First stage: segment, build-model, coarsen, solve, report."),
+    until: str | None = typer.Option(None, "--until", help="Last stage."),
 ) -> None:
     """Run segment → build-model → coarsen → solve → report, skipping up-to-date stages."""
     from .pipeline import run_pipeline

@@ -21,8 +21,9 @@ import dataclasses
 import difflib
 import types
 import typing
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal, Mapping, Union
+from typing import Any, Literal, Union
 
 import yaml
 
@@ -124,7 +125,7 @@ def _coerce(value: Any, tp: Any, where: str, base_dir: Path, meta: Mapping) -> A
         if origin is tuple and args and args[-1] is not Ellipsis:
             if len(value) != len(args):
                 raise InputError(f"{where}: expected a list of {len(args)} items, got {len(value)}")
-            return tuple(_coerce(v, a, f"{where}[{i}]", base_dir, meta) for i, (v, a) in enumerate(zip(value, args)))
+            return tuple(_coerce(v, a, f"{where}[{i}]", base_dir, meta) for i, (v, a) in enumerate(zip(value, args, strict=True)))
         item = args[0] if args else Any
         out = [_coerce(v, item, f"{where}[{i}]", base_dir, meta) for i, v in enumerate(value)]
         return tuple(out) if origin is tuple else out

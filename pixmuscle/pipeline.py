@@ -26,7 +26,7 @@ import importlib
 import json
 import logging
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Any
 
 from .config import parse_section, read_yaml
 from .errors import InputError, PixmuscleError
@@ -185,7 +185,7 @@ def up_to_date(output: Path, schema: str, version: int, config: Any, inputs: lis
     return True
 
 
-def _stage_range(start: Optional[str], until: Optional[str]) -> tuple[int, int]:
+def _stage_range(start: str | None, until: str | None) -> tuple[int, int]:
     def idx(name, default):
         if name is None:
             return default
@@ -200,8 +200,8 @@ def _stage_range(start: Optional[str], until: Optional[str]) -> tuple[int, int]:
     return a, b
 
 
-def run_subject(cfg: PipelineConfig, *, force: bool = False, start: Optional[str] = None,
-                until: Optional[str] = None) -> dict:
+def run_subject(cfg: PipelineConfig, *, force: bool = False, start: str | None = None,
+                until: str | None = None) -> dict:
     """Run the stages for one subject; returns a summary dict (paths, report data)."""
     a, b = _stage_range(start, until)
     active = set(STAGES[a:b + 1])
@@ -317,8 +317,8 @@ def _with_segmentation(bm: Any, seg_path: Path, cfg: PipelineConfig) -> Any:
     return dataclasses.replace(bm, **changes)
 
 
-def run_pipeline(path: str | Path, *, force: bool = False, start: Optional[str] = None,
-                 until: Optional[str] = None) -> bool:
+def run_pipeline(path: str | Path, *, force: bool = False, start: str | None = None,
+                 until: str | None = None) -> bool:
     """Run every subject of a config; a failing subject is reported and the others go on.
 
     Returns True when every subject succeeded.

@@ -19,8 +19,9 @@ import json
 import os
 import sys
 import tempfile
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping, Sequence
+from typing import Any
 
 import h5py
 import numpy as np
@@ -74,7 +75,7 @@ def provenance(inputs: Sequence[str | os.PathLike] = (), config: Any = None) -> 
     return {
         "package": "pixmuscle",
         "version": __version__,
-        "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "argv": list(sys.argv),
         "python": sys.version.split()[0],
         "inputs": {str(Path(p)): sha256_file(p) for p in inputs},

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal
 
 import pytest
 
@@ -24,7 +24,7 @@ class Section:
     kernel: Literal["cubic", "tent"] = "cubic"
     a_over_h: tuple[float, ...] = (1.65, 1.65, 1.65)
     activation: Inner = dataclasses.field(default_factory=Inner)
-    mesh: Optional[Path] = dataclasses.field(default=None, metadata={"must_exist": True})
+    mesh: Path | None = dataclasses.field(default=None, metadata={"must_exist": True})
     names: dict[str, float] = dataclasses.field(default_factory=dict)
     penalty: float = dataclasses.field(default=1.0, metadata={"gt": 0})
 

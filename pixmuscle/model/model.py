@@ -7,8 +7,9 @@ A :class:`Model` is pure data. It is written to and read from ``model.h5`` (sche
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 

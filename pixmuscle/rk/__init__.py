@@ -4,8 +4,8 @@ Main entry point: :func:`shape_functions` (paper eq. 7) returning sparse Ψ (P, 
 request, its exact gradients. :func:`kernel` evaluates a 1-D kernel and its derivative.
 """
 
+from pixmuscle.rk.coverage import covering_supports
 from pixmuscle.rk.kernels import KERNELS, SUPPORT_SHAPES, kernel
 from pixmuscle.rk.shape import SingularMomentError, shape_functions
-from pixmuscle.rk.coverage import covering_supports
 
 __all__ = ["KERNELS", "SUPPORT_SHAPES", "SingularMomentError", "covering_supports", "kernel", "shape_functions"]

@@ -11,7 +11,7 @@ nominal, so the approximation is unchanged there.
 from __future__ import annotations
 
 import logging
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
