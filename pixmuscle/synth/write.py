@@ -20,6 +20,7 @@ from pixmuscle.synth.phantom import Phantom
 
 #: the committed samples: prefix -> (factory, keyword arguments); deterministic from the seeds
 SAMPLES = {
+    "leg_demo": (make_leg_phantom, dict(shape=(48, 48, 5), pixel_cm=0.312, slice_cm=0.5, seed=0)),
     "leg_small": (make_leg_phantom, dict(shape=(96, 96, 6), pixel_cm=0.156, slice_cm=0.5, seed=0)),
     "mg_young_small": (make_mg_phantom, dict(subject="young", shape=(96, 64, 8), seed=1)),
     "mg_old_small": (make_mg_phantom, dict(subject="old", shape=(96, 64, 8), seed=2)),
