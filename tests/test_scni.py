@@ -73,9 +73,9 @@ def test_smoothed_gradient_is_cell_average_of_rk_gradient():
     xg, wg = np.polynomial.legendre.leggauss(6)
     pts = []
     wts = []
-    for a, wa in zip(xg, wg):
-        for b, wb in zip(xg, wg):
-            for c, wc in zip(xg, wg):
+    for a, wa in zip(xg, wg, strict=True):
+        for b, wb in zip(xg, wg, strict=True):
+            for c, wc in zip(xg, wg, strict=True):
                 pts.append(m.X[L] + 0.5 * m.spacing * np.array([a, b, c]))
                 wts.append(wa * wb * wc / 8)
     _, grads = shape_functions(m.X, np.array(pts), sup, gradient=True)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import field
-from typing import Literal, Optional
+from typing import Literal
 
 AXES = ("x", "y", "z")
 
@@ -34,11 +34,11 @@ class BoundaryCondition:
     reached at the last load step and ramped linearly over the steps).
     """
 
-    nodes: Optional[str] = field(default=None, metadata={"doc": "name of a node set of the model (z_min, z_max, bone_surface, ...)"})
-    point: Optional[tuple[float, ...]] = field(default=None, metadata={"doc": "[x, y, z] in cm: constrain the node nearest to this point"})
+    nodes: str | None = field(default=None, metadata={"doc": "name of a node set of the model (z_min, z_max, bone_surface, ...)"})
+    point: tuple[float, ...] | None = field(default=None, metadata={"doc": "[x, y, z] in cm: constrain the node nearest to this point"})
     fix: list[Literal["x", "y", "z"]] = field(default_factory=list, metadata={"doc": "components held at zero displacement"})
     displace: dict[str, float] = field(default_factory=dict, metadata={"doc": "prescribed displacement per component, cm (final value)"})
-    name: Optional[str] = field(default=None, metadata={"doc": "name of the reaction-force entry (default: the set name, or point<i>)"})
+    name: str | None = field(default=None, metadata={"doc": "name of the reaction-force entry (default: the set name, or point<i>)"})
 
     def __post_init__(self):
         if (self.nodes is None) == (self.point is None):
@@ -142,7 +142,7 @@ class PenaltyConfig:
     """Penalty number β of the essential boundary conditions (paper eq. 9)."""
 
     factor: float = field(default=1.0e3, metadata={"gt": 0, "doc": "β = factor · (largest reference tangent modulus) / (smallest spacing)"})
-    beta: Optional[float] = field(default=None, metadata={"gt": 0, "doc": "explicit β in N/cm³ (overrides factor)"})
+    beta: float | None = field(default=None, metadata={"gt": 0, "doc": "explicit β in N/cm³ (overrides factor)"})
     at: Literal["auto", "nodes"] = field(default="auto", metadata={"doc": "auto: end sets (x_min..z_max) are constrained on their end faces, other sets at the nodes; nodes: always at the nodes"})
 
 
@@ -165,7 +165,7 @@ class LinearSolverConfig:
     backend: Literal["auto", "direct", "cg_amg"] = "auto"
     auto_direct_max_dofs: int = field(default=90000, metadata={"range": (0, None), "doc": "auto: direct solver up to this many unknowns (3 per node), cg_amg above"})
     rtol: float = field(default=1.0e-10, metadata={"gt": 0, "doc": "relative residual of the Krylov iterations"})
-    reuse_factorization: bool = field(default=True, metadata={"doc": "direct: keep the LU factors and precondition GMRES with them until it needs many iterations"})
+    reuse_factorization: bool = field(default=False, metadata={"doc": "direct: keep the LU factors and precondition GMRES with them until it needs many iterations"})
     maxiter: int = field(default=2000, metadata={"range": (1, None)})
 
 

@@ -32,7 +32,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -96,7 +97,10 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0) -> New
     for it in range(cfg.max_iterations + 1):
         rn = _norm(state.r)
         scale = state.force_scale
-        rel = rn / scale if scale > 0 else (0.0 if rn == 0 else np.inf)
+        if rn <= system.atol:  # round-off level: nothing left to do
+            rel = 0.0
+        else:
+            rel = rn / scale if scale > 0 else np.inf
         if not np.isfinite(rn):
             return NewtonResult(state, False, it, rows, rel, "non-finite residual")
         res_ok = rn <= cfg.residual_tol * scale + system.atol

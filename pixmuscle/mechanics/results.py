@@ -27,8 +27,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -102,7 +103,7 @@ class Results:
     @classmethod
     def from_steps(cls, model: Model, steps: list[dict], *, failed_rows: Sequence = (), status: str = "complete",
                    n_steps: int = 0, constrained: dict | None = None, info: dict | None = None,
-                   sign_convention: str = "") -> "Results":
+                   sign_convention: str = "") -> Results:
         """Collect the per-step dictionaries of :func:`pixmuscle.mechanics.solve.solve`."""
         n = model.n_nodes
         s1 = len(steps)
@@ -159,7 +160,7 @@ def write_results_groups(f, res: Results) -> None:
         write_dataset(rg, k, v, units="N", description="force the support exerts on the body")
     pg = st.create_group("prescribed")
     for k, v in res.prescribed.items():
-        comp = "".join(a for a, m in zip("xyz", res.constrained.get(k, np.zeros(3, bool))) if m)
+        comp = "".join(a for a, m in zip("xyz", res.constrained.get(k, np.zeros(3, bool)), strict=True) if m)
         write_dataset(pg, k, v, units="cm", constrained=comp)
     ng = f.create_group("newton")
     units = {"residual_norm": "N", "energy_norm": "N*cm", "load_factor": "1", "relative_residual": "1", "line_search": "1"}
