@@ -280,6 +280,7 @@ def run_subject(cfg: PipelineConfig, *, force: bool = False, start: str | None =
         index = run_report(main, out / "report", cfg.report, extra=extra)
         summary["report"] = str(index)
         note("report", True)
+        _LOG.info("[%s] report: %s", cfg.name, index)
     return summary
 
 
