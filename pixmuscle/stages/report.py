@@ -233,7 +233,11 @@ def make_report(results_path: str | Path, outdir: str | Path, cfg: ReportConfig 
                                  summary["force_sets"])
     out["force_activation_csv"] = str(C.write_csv(outdir / "force_activation.csv", header, rows))
     curve = summary["curve"]
-    curves = {f"{s} end": (inp.alpha, np.array(curve["axial_force_N"][s], float), inp.converged) for s in summary["force_sets"]}
+    main_label = next((lab for lab, p in dict(extra.get("compare") or {}).items()
+                       if Path(p).resolve() == Path(results_path).resolve() and len(extra["compare"]) > 1), None)
+    prefix = f"{main_label}: " if main_label else ""
+    curves = {f"{prefix}{s} end": (inp.alpha, np.array(curve["axial_force_N"][s], float), inp.converged)
+              for s in summary["force_sets"]}
     more, w = _compare_curves(extra, results_path, cfg.force_sets)
     curves.update(more)
     warnings.extend(w)
