@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from pixmuscle.errors import InputError
 from pixmuscle.imaging.dti import canonical_sign
 from pixmuscle.synth.noise import smooth_field
 from pixmuscle.synth.phantom import (
@@ -31,6 +30,7 @@ from pixmuscle.synth.phantom import (
     Phantom,
     Sample,
     check_fits,
+    check_phantom_args,
     dti_grid,
     grid_affine,
     render_phantom,
@@ -325,17 +325,7 @@ def make_leg_phantom(shape=(128, 128, 12), pixel_cm=0.156, slice_cm=0.5, noise=0
         between any two muscles by at least 26 deg (tilt 15-38 deg from the leg axis, distinct
         azimuths); see ``FIBER_TILT_DEG``, ``FIBER_AZIMUTH_DEG``.
     """
-    shape = tuple(int(n) for n in shape)
-    if len(shape) != 3 or min(shape) < 1:
-        raise InputError(f"make_leg_phantom: shape must be 3 positive ints, got {shape}")
-    for name, val in (("pixel_cm", pixel_cm), ("slice_cm", slice_cm)):
-        if not val > 0:
-            raise InputError(f"make_leg_phantom: {name} must be > 0, got {val}")
-    if noise < 0 or dti_noise < 0:
-        raise InputError("make_leg_phantom: noise and dti_noise must be >= 0")
-    if int(dti_factor) < 1:
-        raise InputError(f"make_leg_phantom: dti_factor must be an int >= 1, got {dti_factor}")
-    dti_factor = int(dti_factor)
+    shape, dti_factor = check_phantom_args("make_leg_phantom", shape, pixel_cm, slice_cm, noise, dti_noise, dti_factor)
     septum_cm = pixel_cm if septum_cm is None else float(septum_cm)
     rng = np.random.default_rng(seed)
 

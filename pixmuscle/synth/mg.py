@@ -29,6 +29,7 @@ from pixmuscle.synth.phantom import (
     Phantom,
     Sample,
     check_fits,
+    check_phantom_args,
     dti_grid,
     grid_affine,
     render_phantom,
@@ -225,17 +226,7 @@ def make_mg_phantom(subject="young", shape=(96, 64, 10), pixel_cm=0.078125, slic
         if not length_cm > 0:
             raise InputError(f"make_mg_phantom: length_cm must be > 0, got {length_cm}")
         shape[2] = max(1, int(round(length_cm / slice_cm)))
-    shape = tuple(shape)
-    if len(shape) != 3 or min(shape) < 1:
-        raise InputError(f"make_mg_phantom: shape must be 3 positive ints, got {shape}")
-    for name, val in (("pixel_cm", pixel_cm), ("slice_cm", slice_cm)):
-        if not val > 0:
-            raise InputError(f"make_mg_phantom: {name} must be > 0, got {val}")
-    if noise < 0 or dti_noise < 0:
-        raise InputError("make_mg_phantom: noise and dti_noise must be >= 0")
-    if int(dti_factor) < 1:
-        raise InputError(f"make_mg_phantom: dti_factor must be an int >= 1, got {dti_factor}")
-    dti_factor = int(dti_factor)
+    shape, dti_factor = check_phantom_args("make_mg_phantom", shape, pixel_cm, slice_cm, noise, dti_noise, dti_factor)
     size_scale = _size_scale(subject) if size_scale is None else float(size_scale)
     pennation_deg = PENNATION_DEG[subject] if pennation_deg is None else float(pennation_deg)
     septum_cm = 1.5 * pixel_cm if septum_cm is None else float(septum_cm)

@@ -131,6 +131,25 @@ class Phantom:
         return float(abs(np.linalg.det(self.affine[:3, :3])))
 
 
+def check_phantom_args(fn: str, shape, pixel_cm, slice_cm, noise, dti_noise, dti_factor) -> tuple[tuple, int]:
+    """Validate the grid and noise arguments shared by the phantom factories.
+
+    Returns the shape as a tuple of ints and ``dti_factor`` as an int; raises InputError naming
+    ``fn`` and the bad argument.
+    """
+    shape = tuple(int(n) for n in shape)
+    if len(shape) != 3 or min(shape) < 1:
+        raise InputError(f"{fn}: shape must be 3 positive ints, got {shape}")
+    for name, val in (("pixel_cm", pixel_cm), ("slice_cm", slice_cm)):
+        if not val > 0:
+            raise InputError(f"{fn}: {name} must be > 0, got {val}")
+    if noise < 0 or dti_noise < 0:
+        raise InputError(f"{fn}: noise and dti_noise must be >= 0")
+    if int(dti_factor) < 1:
+        raise InputError(f"{fn}: dti_factor must be an int >= 1, got {dti_factor}")
+    return shape, int(dti_factor)
+
+
 def grid_affine(spacing, origin) -> np.ndarray:
     """Axis-aligned voxel -> world affine (4, 4) for ``spacing`` (3,) and ``origin`` (3,) cm."""
     a = np.diag(np.r_[np.asarray(spacing, dtype=float), 1.0])
