@@ -558,17 +558,7 @@ def penalty_scalar_to_dofs(Kpen, n):
     return out
 
 
-def rigid_body_modes(X):
-    Xc = X - X.mean(axis=0)
-    n = len(X)
-    B = np.zeros((n, 3, 6))
-    for k in range(3):
-        B[:, k, k] = 1.0
-    x, y, z = Xc.T
-    B[:, 0, 3], B[:, 1, 3] = -y, x
-    B[:, 1, 4], B[:, 2, 4] = -z, y
-    B[:, 0, 5], B[:, 2, 5] = z, -x
-    return B.reshape(3 * n, 6)
+from pixmuscle.mechanics.linsolve import rigid_body_modes  # noqa: E402  (same modes as the solver)
 
 
 def geometric_aggregates(ijk, block=(3, 3, 1)):

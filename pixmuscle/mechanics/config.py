@@ -21,6 +21,8 @@ import dataclasses
 from dataclasses import field
 from typing import Literal
 
+from .materials import CONNECTIVE_TISSUE, FAT, MUSCLE
+
 AXES = ("x", "y", "z")
 
 
@@ -73,36 +75,36 @@ class BoundaryCondition:
 class MuscleParams:
     """Transversely isotropic muscle (paper eqs. 22–26, Table 2 as corrected in the errata), N/cm²."""
 
-    C10: float = 6.43
-    C01: float = -3.8
-    C20: float = 0.94
-    C02: float = 0.0005
-    C11: float = -0.0043
-    K: float = field(default=5000.0, metadata={"gt": 0, "doc": "bulk modulus, N/cm²"})
-    sigma_max: float = field(default=30.0, metadata={"range": (0.0, None), "doc": "maximum isometric fibre stress, N/cm²"})
-    lambda_opt: float = field(default=1.0, metadata={"gt": 0, "doc": "optimal fibre stretch λ̂0 (1.0: image configuration at optimal length)"})
-    gamma1: float = 0.05
-    gamma2: float = 6.6
+    C10: float = MUSCLE.C10
+    C01: float = MUSCLE.C01
+    C20: float = MUSCLE.C20
+    C02: float = MUSCLE.C02
+    C11: float = MUSCLE.C11
+    K: float = field(default=MUSCLE.K, metadata={"gt": 0, "doc": "bulk modulus, N/cm²"})
+    sigma_max: float = field(default=MUSCLE.sigma_max, metadata={"range": (0.0, None), "doc": "maximum isometric fibre stress, N/cm²"})
+    lambda_opt: float = field(default=MUSCLE.lambda_opt, metadata={"gt": 0, "doc": "optimal fibre stretch λ̂0 (1.0: image configuration at optimal length)"})
+    gamma1: float = MUSCLE.gamma1
+    gamma2: float = MUSCLE.gamma2
 
 
 @dataclasses.dataclass(frozen=True)
 class ConnectiveTissueParams:
     """Cubic isotropic hyperelastic model (paper eq. 27, Table 1), N/cm²."""
 
-    C10: float = 30.0
-    C20: float = 80.0
-    C30: float = 800.0
-    K: float = field(default=50000.0, metadata={"gt": 0, "doc": "bulk modulus, N/cm²"})
+    C10: float = CONNECTIVE_TISSUE.C10
+    C20: float = CONNECTIVE_TISSUE.C20
+    C30: float = CONNECTIVE_TISSUE.C30
+    K: float = field(default=CONNECTIVE_TISSUE.K, metadata={"gt": 0, "doc": "bulk modulus, N/cm²"})
 
 
 @dataclasses.dataclass(frozen=True)
 class FatParams:
     """Cubic isotropic model for fat: Table 1 (ten times softer than connective tissue), N/cm²."""
 
-    C10: float = 3.0
-    C20: float = 8.0
-    C30: float = 80.0
-    K: float = field(default=5000.0, metadata={"gt": 0, "doc": "bulk modulus, N/cm²"})
+    C10: float = FAT.C10
+    C20: float = FAT.C20
+    C30: float = FAT.C30
+    K: float = field(default=FAT.K, metadata={"gt": 0, "doc": "bulk modulus, N/cm²"})
 
 
 @dataclasses.dataclass(frozen=True)
