@@ -1,146 +1,205 @@
-"""Benchmark of the SCNI–RKPM solve on a synthetic lower-leg-like model.
+"""Benchmark of the whole SCNI–RKPM activation sweep (paper Example 2 set-up) at growing size.
 
-Builds a label volume with an elliptic cross-section (muscle core with two pennate halves, a
-subcutaneous fat ring, a connective-tissue septum, a bone hole fixed in-plane), runs a short
-isometric activation sweep (paper Example 2 boundary conditions) and records
+Model: the SYNTHETIC lower leg of :mod:`pixmuscle.synth.leg` (muscles with fibre fields,
+connective tissue, skin, fat; tibia and fibula are holes) sampled at voxel centres of the paper's
+Example 2 grid, 0.156 × 0.156 cm in-plane and 0.5 cm between slices. The leg is scaled down for
+the smaller sizes: ~5k nodes = (leg scale 0.50, 8 slices), ~20k = (0.72, 15), ~75k = (1.04, 25,
+the paper's 73,659-node model has 25 slices). Smaller legs hold relatively more fat and
+connective tissue.
 
-* build time (RK shape functions + SCNI operators + pattern + NSNI + penalty),
-* assembly time per Newton iteration, linear-solver time per iteration (factorisation or
-  GMRES with kept factors), number of factorisations,
-* Newton iterations per step, peak RSS, non-zeros per row of the stiffness.
+Solve: α 0 → 0.95 in 10 load steps, both ends fixed, bone surfaces fixed in-plane, cubic
+kernel, linear basis, a/h = 1.65, every other setting at its default. Each case runs in its own
+process, so its peak RSS is its own.
 
-Writes ``benchmarks/results/bench_solve.json`` and ``benchmarks/results/bench_solve.md``.
+Records per case: RK + SCNI build, pattern/assembly time per Newton iteration, linear set-up and
+solve time per Newton iteration, CG iterations, Newton iterations per step, whole sweep, peak RSS,
+non-zeros per row, the final reaction force; then the growth exponent of each quantity between
+the sizes (least-squares slope of log(quantity) against log(nodes)).
+
+Writes ``benchmarks/results/bench_solve.json`` and ``bench_solve.md``.
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_solve.py            # ~5k nodes
-    .venv/bin/python benchmarks/bench_solve.py --sizes 5000 20000
+    .venv/bin/python benchmarks/bench_solve.py                       # 5k, 20k, 75k with cg_amg, 5k direct
+    .venv/bin/python benchmarks/bench_solve.py --cases 5k:cg_amg 5k:direct
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import platform
 import resource
+import subprocess
+import sys
 import time
 
 import numpy as np
 
-from pixmuscle.config import parse_section
-from pixmuscle.mechanics.config import SolveConfig
-from pixmuscle.mechanics.solve import solve
-from pixmuscle.model.build import model_from_labels
-
 OUT = pathlib.Path(__file__).parent / "results"
+SPACING = (0.15625, 0.15625, 0.5)
+SIZES = {"2k": (0.40, 5), "5k": (0.50, 8), "10k": (0.62, 11), "20k": (0.72, 15), "75k": (1.04, 25)}
+DEFAULT_CASES = ["5k:direct", "5k:cg_amg", "20k:cg_amg", "75k:cg_amg"]
 
 
-def leg_labels(target_nodes: int, spacing=(0.3125, 0.3125, 1.0), n_slices: int = 8):
-    """Label volume (0 bg, 1 muscle, 2 CT, 3 fat, 4 bone) of about ``target_nodes`` nodes, and fibres."""
-    per_slice = target_nodes / n_slices
-    hx, hy, _ = spacing
-    # ellipse area π a b with b = 0.8 a, minus bone: solve for a (cm)
-    a = np.sqrt(per_slice * hx * hy / (np.pi * 0.8 * 0.96))
-    b = 0.8 * a
-    nx, ny = int(np.ceil(2 * a / hx)) + 3, int(np.ceil(2 * b / hy)) + 3
-    x = (np.arange(nx) - (nx - 1) / 2) * hx
-    y = (np.arange(ny) - (ny - 1) / 2) * hy
-    X, Y = np.meshgrid(x, y, indexing="ij")
-    r = (X / a) ** 2 + (Y / b) ** 2
-    body = r <= 1.0
-    bone = ((X + 0.3 * a) / (0.2 * a)) ** 2 + (Y / (0.2 * b)) ** 2 <= 1.0
-    fat = body & (r > 0.8)
-    septum = body & ~fat & (np.abs(X - 0.1 * a) < 0.6 * hx)
-    lab2 = np.zeros((nx, ny), np.int16)
-    lab2[body] = 1
-    lab2[fat] = 3
-    lab2[septum] = 2
-    lab2[bone] = 4
-    labels = np.repeat(lab2[:, :, None], n_slices, axis=2)
-    pen = np.deg2rad(15.0)
-    fib2 = np.zeros((nx, ny, 3))
-    fib2[X < 0.1 * a] = [np.sin(pen), 0.0, np.cos(pen)]
-    fib2[X >= 0.1 * a] = [-np.sin(pen), 0.0, np.cos(pen)]
-    fibers = np.repeat(fib2[:, :, None, :], n_slices, axis=2)
-    return labels, fibers, np.asarray(spacing, float)
+def leg_labels(scale: float, n_slices: int, seed: int = 0):
+    """SYNTHETIC leg label volume (0 background, 1 muscle, 2 connective tissue, 3 fat, 4 bone) and fibres."""
+    from pixmuscle.synth import phantom as ph
+    from pixmuscle.synth.leg import LegAnatomy
+
+    h = np.asarray(SPACING)
+    rng = np.random.default_rng(seed)
+    anat = LegAnatomy((0.0, 0.0), (0.0, (n_slices - 1) * h[2]), rng, leg_scale=scale, fat_cm=0.6 * scale)
+    lo, hi = anat.bounding_box()
+    nx, ny = (np.ceil((hi - lo) / h[:2]).astype(int) + 3)
+    i, j, k = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(n_slices), indexing="ij")
+    pts = np.column_stack([lo[0] - h[0] + i.ravel() * h[0], lo[1] - h[1] + j.ravel() * h[1], k.ravel() * h[2]])
+    s = anat(pts, want_fiber=True)
+    code = np.zeros(len(pts), np.int16)
+    code[s.cls == ph.MUSCLE] = 1
+    code[(s.cls == ph.CT) | (s.cls == ph.SKIN)] = 2
+    code[s.cls == ph.FAT] = 3
+    code[(s.cls == ph.CORTEX) | (s.cls == ph.MARROW)] = 4
+    fib = np.where(code[:, None] == 1, s.fiber, 0.0)
+    return code.reshape(nx, ny, n_slices), fib.reshape(nx, ny, n_slices, 3), h
 
 
-def run_case(target_nodes: int, steps: int, alpha_to: float) -> dict:
-    labels, fibers, h = leg_labels(target_nodes)
-    t0 = time.perf_counter()
-    model = model_from_labels(labels, h, fibers=fibers)
-    t_model = time.perf_counter() - t0
-    cfg = parse_section(SolveConfig, {
+def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: float | None) -> dict:
+    from pixmuscle.config import parse_section
+    from pixmuscle.mechanics.config import SolveConfig
+    from pixmuscle.mechanics.solve import solve
+    from pixmuscle.model.build import model_from_labels
+
+    labels, fibers, h = leg_labels(*SIZES[size])
+    model = model_from_labels(labels, h, fibers=fibers, fiber_fallback="muscle_mean")
+    sec = {
         "steps": steps,
         "activation": {"from": 0.0, "to": alpha_to},
         "boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]},
                                 {"nodes": "bone_surface", "fix": ["x", "y"]}],
-    }, "solve")
+        "solver": {"backend": backend},
+    }
+    if penalty is not None:
+        sec["penalty"] = {"factor": penalty}
+    cfg = parse_section(SolveConfig, sec, "solve")
     t1 = time.perf_counter()
     res = solve(model, cfg)
     wall = time.perf_counter() - t1
     info = res.info
     n_it = int(np.sum(res.iterations))
-    n_asm = max(int(info["n_assembly"]), 1)
     tissue = np.bincount(model.tissue, minlength=4)
+    lin = info["linear_iterations"]
     return {
-        "target_nodes": target_nodes,
-        "nodes": model.n_nodes,
-        "dofs": 3 * model.n_nodes,
+        "size": size, "backend": backend, "nodes": model.n_nodes, "dofs": 3 * model.n_nodes,
         "tissue_nodes": {"muscle": int(tissue[1]), "connective_tissue": int(tissue[2]), "fat": int(tissue[3])},
-        "spacing_cm": h.tolist(),
-        "steps": steps,
-        "alpha_to": alpha_to,
-        "status": res.status,
-        "model_build_s": round(t_model, 3),
-        "build_s": round(info["build_s"], 3),
-        "build_detail_s": {k: round(info[k], 3) for k in ("scni_s", "pattern_s", "stabilization_s", "penalty_s")},
-        "newton_iterations_per_step": res.iterations.tolist(),
-        "newton_iterations_total": n_it,
-        "cutbacks": res.cutbacks.tolist(),
-        "assembly_s_per_iteration": round(info["assembly_s"] / n_asm, 3),
-        "material_eval_s_per_iteration": round(info["material_s"] / max(info["n_evaluate"], 1), 3),
-        "linear_s_per_iteration": round((info["linear_setup_s"] + info["linear_solve_s"]) / n_asm, 3),
-        "linear_solver": info["linear_solver"],
+        "spacing_cm": list(SPACING), "steps": steps, "alpha_to": alpha_to, "status": res.status,
+        "penalty_factor": cfg.penalty.factor, "beta_N_per_cm3": info["beta"],
+        "build_s": round(info["build_s"], 2),
+        "pattern_s": round(info.get("pattern_s", 0.0), 2),
+        "assembly_s_per_iteration": round(info["assembly_s"] / max(info["n_assembly"], 1), 3),
+        "n_assembly": int(info["n_assembly"]),
+        "linear_setup_s_total": round(info["linear_setup_s"], 2),
+        "linear_s_per_iteration": round((info["linear_setup_s"] + info["linear_solve_s"]) / max(n_it, 1), 3),
+        "cg_iterations_total": int(np.sum(lin)) if backend == "cg_amg" else None,
+        "cg_iterations_per_newton": round(float(np.mean(lin)), 1) if backend == "cg_amg" else None,
+        "cg_s_per_iteration": round(info["linear_solve_s"] / max(np.sum(lin), 1), 4) if backend == "cg_amg" else None,
+        "preconditioner_builds": info.get("preconditioner_builds"),
         "factorizations": info.get("factorizations"),
-        "krylov_iterations": info.get("linear_iterations"),
-        "solve_wall_s": round(wall, 2),
-        "nnz": int(info["nnz"]),
-        "nnz_per_row": round(float(info["nnz_per_row"]), 1),
-        "beta_N_per_cm3": info["beta"],
-        "final_force_z_max_N": float(res.force("z_max")[-1]),
-        "peak_rss_MB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "nnz_per_row": info.get("nnz_per_row"),
+        "preconditioner_nnz_per_row": info.get("preconditioner_nnz_per_row"),
+        "newton_iterations_per_step": res.iterations.tolist(), "newton_iterations_total": n_it,
+        "cutbacks": int(np.sum(res.cutbacks)),
+        "material_s_per_evaluation": round(info["material_s"] / max(info["n_evaluate"], 1), 3),
+        "sweep_s": round(wall, 1),
+        "force_z_max_N": [float(f) for f in res.force("z_max")],
+        "peak_rss_GB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2),
     }
 
 
+EXPONENT_KEYS = ("build_s", "assembly_s_per_iteration", "linear_s_per_iteration", "cg_iterations_per_newton",
+                 "newton_iterations_total", "sweep_s", "peak_rss_GB")
+
+
+def growth_exponents(cases: list[dict]) -> dict:
+    """Least-squares slope of log(quantity) against log(nodes) per backend (needs ≥ 2 sizes)."""
+    out = {}
+    for be in sorted({c["backend"] for c in cases}):
+        cs = [c for c in cases if c["backend"] == be and c["status"] == "complete"]
+        if len({c["nodes"] for c in cs}) < 2:
+            continue
+        n = np.log([c["nodes"] for c in cs])
+        out[be] = {}
+        for k in EXPONENT_KEYS:
+            v = [c.get(k) for c in cs]
+            if all(isinstance(x, (int, float)) and x > 0 for x in v):
+                out[be][k] = round(float(np.polyfit(n, np.log(v), 1)[0]), 2)
+    return out
+
+
+def write_tables(cases, argv):
+    meta = {"python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count(),
+            "platform": platform.platform(), "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "command": ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)}
+    exps = growth_exponents(cases)
+    (OUT / "bench_solve.json").write_text(json.dumps({"meta": meta, "cases": cases, "growth_exponents": exps}, indent=1))
+    lines = ["# bench_solve: isometric activation sweep of the SYNTHETIC leg (paper Example 2 set-up)", "",
+             f"{meta['date_utc']}, {meta['platform']}, Python {meta['python']}, {meta['cpus']} CPUs. "
+             f"Command: `{meta['command']}`", "",
+             "| nodes | backend | penalty factor | nnz/row (K / precond.) | build (s) | assembly / Newton it (s) | "
+             "linear / Newton it (s) | CG its / Newton it | Newton its / step | sweep (s) | peak RSS (GB) | F_z(z_max) at α=0.95 (N) | status |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for c in cases:
+        if "error" in c:
+            lines.append(f"| {c.get('size')} | {c.get('backend')} | | | | | | | | | {c.get('peak_rss_GB', '')} | | {c['error'][:60]} |")
+            continue
+        nnz = f"{c['nnz_per_row'] or '—'} / {c['preconditioner_nnz_per_row'] and round(c['preconditioner_nnz_per_row'])}"
+        lines.append(f"| {c['nodes']} | {c['backend']} | {c['penalty_factor']:g} | {nnz} | {c['build_s']} | "
+                     f"{c['assembly_s_per_iteration']} | {c['linear_s_per_iteration']} | {c['cg_iterations_per_newton'] or '—'} | "
+                     f"{c['newton_iterations_per_step'][1:]} | {c['sweep_s']} | {c['peak_rss_GB']} | "
+                     f"{c['force_z_max_N'][-1]:.2f} | {c['status'][:30]} |")
+    if exps:
+        lines += ["", "Growth exponents (slope of log quantity against log nodes):", "",
+                  "| backend | " + " | ".join(EXPONENT_KEYS) + " |", "|---|" + "---|" * len(EXPONENT_KEYS)]
+        for be, e in exps.items():
+            lines.append(f"| {be} | " + " | ".join(str(e.get(k, "—")) for k in EXPONENT_KEYS) + " |")
+    (OUT / "bench_solve.md").write_text("\n".join(lines) + "\n")
+
+
 def main(argv=None):
+    argv = sys.argv[1:] if argv is None else argv
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--sizes", type=int, nargs="+", default=[5000], help="target node counts")
-    p.add_argument("--steps", type=int, default=3)
-    p.add_argument("--alpha", type=float, default=0.3, help="final activation (larger increments need more Newton iterations)")
+    p.add_argument("--cases", nargs="+", default=DEFAULT_CASES, help="SIZE:BACKEND, SIZE in " + ", ".join(SIZES))
+    p.add_argument("--steps", type=int, default=10)
+    p.add_argument("--alpha", type=float, default=0.95)
+    p.add_argument("--penalty", type=float, default=None, help="penalty factor (default: the solver default)")
+    p.add_argument("--one", default=None, help=argparse.SUPPRESS)  # internal: run one case, print JSON
     args = p.parse_args(argv)
+    if args.one:
+        size, backend = args.one.split(":")
+        print("RESULT " + json.dumps(run_case(size, backend, args.steps, args.alpha, args.penalty)), flush=True)
+        return 0
     OUT.mkdir(parents=True, exist_ok=True)
     cases = []
-    for n in args.sizes:
-        print(f"case ~{n} nodes ...", flush=True)
-        cases.append(run_case(n, args.steps, args.alpha))
-        print(json.dumps(cases[-1], indent=1), flush=True)
-    meta = {"python": platform.python_version(), "machine": platform.machine(), "cpus": __import__("os").cpu_count(),
-            "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "note": "peak RSS is per process, cumulative over cases"}
-    (OUT / "bench_solve.json").write_text(json.dumps({"meta": meta, "cases": cases}, indent=2))
-    lines = ["# bench_solve: SCNI–RKPM isometric activation of a synthetic leg", "",
-             f"{meta['date_utc']}, Python {meta['python']}, {meta['cpus']} CPUs (shared). Command: "
-             "`.venv/bin/python benchmarks/bench_solve.py " + " ".join(["--sizes", *map(str, args.sizes), "--steps", str(args.steps), "--alpha", str(args.alpha)]) + "`", "",
-             "| nodes | nnz/row | build (s) | assembly / it (s) | linear / it (s) | factorisations | Newton its per step | solve wall (s) | peak RSS (MB) | status |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
-    for c in cases:
-        lines.append(f"| {c['nodes']} | {c['nnz_per_row']} | {c['build_s']} | {c['assembly_s_per_iteration']} | "
-                     f"{c['linear_s_per_iteration']} | {c['factorizations']} | {c['newton_iterations_per_step']} | "
-                     f"{c['solve_wall_s']} | {c['peak_rss_MB']} | {c['status'][:40]} |")
-    (OUT / "bench_solve.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    for case in args.cases:
+        print(f"== {case}", flush=True)
+        cmd = [sys.executable, __file__, "--one", case, "--steps", str(args.steps), "--alpha", str(args.alpha)]
+        if args.penalty is not None:
+            cmd += ["--penalty", str(args.penalty)]
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        got = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+        if got:
+            cases.append(json.loads(got[-1][7:]))
+        else:
+            size, backend = case.split(":")
+            cases.append({"size": size, "backend": backend, "error": (proc.stderr.strip().splitlines() or ["?"])[-1],
+                          "wall_s": round(time.perf_counter() - t0, 1)})
+        print(json.dumps(cases[-1])[:600], flush=True)
+        write_tables(cases, argv)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -22,8 +22,9 @@ import scipy.sparse as sp
 
 
 @numba.njit(cache=True, nogil=True)
-def _fill(ptr, nodes, g, A, w, indptr, indices, data):  # pragma: no cover - compiled
+def _fill(ptr, nodes, g, A, w, indptr, indices, data, ijk, reach, wide):  # pragma: no cover - compiled
     nc = ptr.shape[0] - 1
+    filtered = reach >= 0
     t = np.empty((3, 3, 3))
     for L in range(nc):
         s = ptr[L]
@@ -48,6 +49,10 @@ def _fill(ptr, nodes, g, A, w, indptr, indices, data):  # pragma: no cover - com
                 h1 = g[aa, 1]
                 h2 = g[aa, 2]
                 if h0 == 0.0 and h1 == 0.0 and h2 == 0.0:
+                    continue
+                if filtered and not (wide[na] or wide[nb]) and (
+                        abs(ijk[na, 0] - ijk[nb, 0]) > reach or abs(ijk[na, 1] - ijk[nb, 1]) > reach
+                        or abs(ijk[na, 2] - ijk[nb, 2]) > reach):
                     continue
                 lo = indptr[na]
                 hi = indptr[na + 1] - 1
@@ -90,6 +95,15 @@ class Assembler:
     support : CSR (N_cells, N_nodes)
         Cell–node support incidence (:func:`support_pattern`); its sorted column indices per row
         are the nodes whose gradient vectors enter cell L.
+    ijk : (N_nodes, 3) int, optional
+        Voxel indices of the nodes; needed with ``reach``.
+    reach : int, optional
+        Keep only the blocks of node pairs at most ``reach`` voxels apart along every axis
+        (a *filtered* stiffness, used to build preconditioners: :mod:`.linsolve`). The fill then
+        skips the other pairs, and :meth:`align_scalar` drops entries outside the pattern.
+    wide : (N_nodes,) bool, optional
+        Nodes whose every pair is kept in a filtered pattern (nodes with enlarged RK supports,
+        which couple further than the nominal support).
 
     Attributes
     ----------
@@ -97,19 +111,41 @@ class Assembler:
         Block-CSR structure of the N × N block pattern (3×3 blocks), columns sorted.
     """
 
-    def __init__(self, support: sp.csr_matrix):
+    def __init__(self, support: sp.csr_matrix, ijk: np.ndarray | None = None, reach: int | None = None,
+                 wide: np.ndarray | None = None):
         S = sp.csr_matrix(support)
         S.sort_indices()
         self.n_cells, self.n_nodes = S.shape
         it = _int_dtype(max(S.nnz, self.n_nodes))
         self.ptr = S.indptr.astype(it)
         self.nodes = S.indices.astype(it)
-        St = S.T.tocsr()
-        P = (St @ S).tocsr()
+        Sb = sp.csr_matrix((np.ones(S.nnz, np.float32), S.indices, S.indptr), shape=S.shape)
+        P = (Sb.T.tocsr() @ Sb).tocsr()
+        del Sb
         P.sort_indices()
-        it = _int_dtype(max(P.nnz, self.n_nodes))
-        self.indptr = P.indptr.astype(it)
-        self.indices = P.indices.astype(it)
+        self.reach = -1 if reach is None else int(reach)
+        if self.reach >= 0:
+            if ijk is None:
+                raise ValueError("a filtered pattern (reach) needs the voxel indices ijk")
+            self.ijk = np.ascontiguousarray(ijk, dtype=np.int32)
+            rows = np.repeat(np.arange(self.n_nodes, dtype=np.int32), np.diff(P.indptr))
+            near = np.ones(rows.shape[0], bool)
+            for ax in range(3):  # per axis: no (nnzb, 3) temporaries
+                c = self.ijk[:, ax]
+                near &= np.abs(c[rows] - c[P.indices]) <= self.reach
+            self.wide = np.zeros(self.n_nodes, np.bool_) if wide is None else np.asarray(wide, np.bool_)
+            near |= self.wide[rows] | self.wide[P.indices]
+            indptr = np.concatenate([[0], np.cumsum(np.bincount(rows[near], minlength=self.n_nodes))])
+            indices = P.indices[near]
+            del rows, near
+        else:
+            self.ijk = np.zeros((1, 3), np.int32)
+            self.wide = np.zeros(1, np.bool_)
+            indptr, indices = P.indptr, P.indices
+        del P
+        it = _int_dtype(max(len(indices), self.n_nodes))
+        self.indptr = np.asarray(indptr).astype(it)
+        self.indices = np.asarray(indices).astype(it)
         self._rows = None
 
     @property
@@ -165,25 +201,37 @@ class Assembler:
         if out is None:
             out = self.zeros()
         _fill(self.ptr, self.nodes, np.ascontiguousarray(g, dtype=np.float64), np.ascontiguousarray(A, dtype=np.float64),
-              np.ascontiguousarray(w, dtype=np.float64), self.indptr, self.indices, out)
+              np.ascontiguousarray(w, dtype=np.float64), self.indptr, self.indices, out, self.ijk, self.reach,
+              self.wide)
         return out
 
-    def block_positions(self, brow: np.ndarray, bcol: np.ndarray) -> np.ndarray:
-        """Positions of blocks (brow, bcol) in the pattern; ``ValueError`` if one is outside it."""
+    def block_positions(self, brow: np.ndarray, bcol: np.ndarray, missing: str = "raise") -> np.ndarray:
+        """Positions of blocks (brow, bcol) in the pattern.
+
+        A block outside the pattern raises ``ValueError`` (``missing="raise"``) or gets position −1
+        (``missing="mark"``; what a filtered pattern does with far pairs).
+        """
         if self._rows is None:
             self._rows = np.repeat(np.arange(self.n_nodes, dtype=np.int64), np.diff(self.indptr))
         keys = self._rows * self.n_nodes + self.indices
         q = np.asarray(brow, np.int64) * self.n_nodes + np.asarray(bcol, np.int64)
         pos = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
-        if not np.all(keys[pos] == q):
+        found = keys[pos] == q
+        if missing == "mark":
+            return np.where(found, pos, -1)
+        if not np.all(found):
             raise ValueError("matrix has entries outside the stiffness pattern")
         return pos
 
     def align_scalar(self, M: sp.spmatrix, i: int, k: int, out: np.ndarray) -> np.ndarray:
-        """Add an (N × N) matrix to component (i, k) of every block: K[3I+i, 3J+k] += M[I, J]."""
+        """Add an (N × N) matrix to component (i, k) of every block: K[3I+i, 3J+k] += M[I, J].
+
+        On a filtered pattern (``reach``) the entries between far nodes are dropped.
+        """
         C = sp.coo_matrix(M)
-        pos = self.block_positions(C.row, C.col)
-        np.add.at(out[:, i, k], pos, C.data)
+        pos = self.block_positions(C.row, C.col, missing="mark" if self.reach >= 0 else "raise")
+        keep = pos >= 0
+        np.add.at(out[:, i, k], pos[keep], C.data[keep])
         return out
 
     def align(self, M: sp.spmatrix, out: np.ndarray) -> np.ndarray:

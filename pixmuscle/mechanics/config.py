@@ -141,9 +141,16 @@ class StabilizationConfig:
 
 @dataclasses.dataclass(frozen=True)
 class PenaltyConfig:
-    """Penalty number β of the essential boundary conditions (paper eq. 9)."""
+    """Penalty number β of the essential boundary conditions (paper eq. 9).
 
-    factor: float = field(default=1.0e3, metadata={"gt": 0, "doc": "β = factor · (largest reference tangent modulus) / (smallest spacing)"})
+    The default factor 1 makes β the stiffness of one cell of the stiffest tissue in bulk
+    (≈ 3·10⁵ N/cm³ at 0.156 cm). Reaction forces are insensitive to it (≤ 0.3 % between factors
+    1 and 10³ on the leg, docs/linsolve-research.md §4), while iterative solvers slow down with it
+    (2× the CG iterations at factor 10; no convergence at 10³), so the same default serves both
+    backends and their results agree.
+    """
+
+    factor: float = field(default=1.0, metadata={"gt": 0, "doc": "β = factor · (largest reference tangent modulus) / (smallest spacing)"})
     beta: float | None = field(default=None, metadata={"gt": 0, "doc": "explicit β in N/cm³ (overrides factor)"})
     at: Literal["auto", "nodes"] = field(default="auto", metadata={"doc": "auto: end sets (x_min..z_max) are constrained on their end faces, other sets at the nodes; nodes: always at the nodes"})
 
@@ -165,8 +172,8 @@ class LinearSolverConfig:
     """Linear solver backend (:mod:`pixmuscle.mechanics.linsolve`)."""
 
     backend: Literal["auto", "direct", "cg_amg"] = "auto"
-    auto_direct_max_dofs: int = field(default=90000, metadata={"range": (0, None), "doc": "auto: direct solver up to this many unknowns (3 per node), cg_amg above"})
-    rtol: float = field(default=1.0e-10, metadata={"gt": 0, "doc": "relative residual of the Krylov iterations"})
+    auto_direct_max_dofs: int = field(default=12000, metadata={"range": (0, None), "doc": "auto: direct solver up to this many unknowns (3 per node), cg_amg above"})
+    rtol: float = field(default=1.0e-10, metadata={"gt": 0, "doc": "relative residual of the Krylov iterations when Newton gives none; also the floor of Newton's adaptive tolerance"})
     reuse_factorization: bool = field(default=False, metadata={"doc": "direct: keep the LU factors and precondition GMRES with them until it needs many iterations"})
     maxiter: int = field(default=2000, metadata={"range": (1, None)})
 

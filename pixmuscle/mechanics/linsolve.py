@@ -1,21 +1,23 @@
 """Linear solvers for the Newton systems K Δd = r (3N unknowns, symmetric stiffness).
 
-A backend is an object with ``factorize(K)`` (set up for a new matrix) and ``solve(r)``; it keeps
-``info`` (last iteration count, set-up and solve times). Backends:
+A backend has ``prepare(system, state)`` (set up for the tangent of a new Newton state) and
+``solve(r, rtol=None)``; it keeps ``info`` (last iteration count, set-up and solve times).
+Backends:
 
 ``direct``
-    Sparse LU (SuperLU via :func:`scipy.sparse.linalg.splu`) in a geometric nested-dissection
-    order of the voxel grid (:class:`DirectSolver`). Robust for the nearly incompressible tissues
-    and the penalty rows; time and memory of one factorisation grow quickly with size (about 4 s
-    at 2.8k nodes on one core).
+    Sparse LU (SuperLU via :func:`scipy.sparse.linalg.splu`) of the assembled tangent in a
+    geometric nested-dissection order of the voxel grid (:class:`DirectSolver`). Robust for the
+    nearly incompressible tissues and any penalty number, but the SCNI tangent couples each node
+    with ~300 others (±4 voxels), so factor time and memory grow fast: about 16 s and 2.4 GB at
+    5k nodes on one core, out of reach at 20k (docs/performance.md).
 ``cg_amg``
-    Conjugate gradients preconditioned by smoothed-aggregation algebraic multigrid
-    (:mod:`pyamg`) on the 3×3 node blocks with the six rigid-body modes as near-null space; falls
-    back to GMRES with the same preconditioner when CG breaks down (indefinite tangent), and to a
-    direct solve when that fails too. Measured: with K/μ ≈ 10³ (Tables 1–2) and a/h = 1.65 the
-    AMG-preconditioned iterations barely converge (residual reduced ~3× in 300 iterations on a
-    1k-node block), so this backend is kept for a later scale-up issue, not used by ``auto``
-    below ``auto_direct_max_dofs``.
+    Conjugate gradients on the matrix-free tangent (:mod:`.tangent`: always the exact current
+    tangent, never assembled), preconditioned by smoothed-aggregation AMG (:mod:`pyamg`, six
+    rigid-body modes as near-null space, first-level aggregates of 3×3×1 voxels) built from a
+    filtered positive stand-in of the tangent (blocks within ±2 voxels,
+    :meth:`~pixmuscle.mechanics.solve.MechanicalSystem.preconditioner_matrix`). The hierarchy is
+    rebuilt only when the iteration count has grown (:class:`KrylovAMGSolver`). Newton passes an
+    adaptive tolerance (inexact Newton). Memory grows linearly with the model.
 ``auto``
     ``direct`` up to ``auto_direct_max_dofs`` unknowns, ``cg_amg`` above.
 """
@@ -42,10 +44,15 @@ class LinearSolver:
     def __init__(self):
         self.info = {"iterations": 0, "setup_s": 0.0, "solve_s": 0.0}
 
+    def prepare(self, system, state) -> None:
+        """Set up for the tangent of ``state`` (default: factorise the assembled stiffness)."""
+        self.factorize(system.stiffness(state))
+
     def factorize(self, K: sp.spmatrix) -> None:  # pragma: no cover - interface
         raise NotImplementedError
 
-    def solve(self, r: np.ndarray) -> np.ndarray:  # pragma: no cover - interface
+    def solve(self, r: np.ndarray, rtol: float | None = None) -> np.ndarray:  # pragma: no cover - interface
+        """Solve K x = r; ``rtol`` is the accuracy the caller needs (iterative backends)."""
         raise NotImplementedError
 
 
@@ -193,7 +200,7 @@ class DirectSolver(LinearSolver):
         else:
             self._fresh = False
 
-    def solve(self, r):
+    def solve(self, r, rtol=None):
         t0 = time.perf_counter()
         setup0 = self.info["setup_s"]
         r = np.asarray(r, float)
@@ -235,66 +242,178 @@ def rigid_body_modes(X: np.ndarray) -> np.ndarray:
     return B.reshape(3 * n, 6)
 
 
-class AMGSolver(LinearSolver):
-    """CG (GMRES fallback) with a smoothed-aggregation AMG preconditioner (pyamg)."""
+def pcg(A, b: np.ndarray, M, rtol: float, maxiter: int, x0: np.ndarray | None = None):
+    """Preconditioned conjugate gradients for a symmetric positive definite operator.
+
+    Parameters
+    ----------
+    A, M : objects with ``@`` (operator and preconditioner)
+    b : (n,) float
+    rtol : float
+        Stop when ‖b − A x‖ ≤ rtol ‖b‖ (recursively updated residual).
+    maxiter : int
+    x0 : (n,) float, optional
+
+    Returns
+    -------
+    x : (n,) float
+    iterations : int
+    status : str
+        ``"converged"``, ``"maxiter"`` or ``"breakdown"`` (pᵀ A p ≤ 0: A is not positive definite).
+    """
+    x = np.zeros_like(b) if x0 is None else np.array(x0, float)
+    r = b - A @ x if x0 is not None else b.copy()
+    bn = float(np.linalg.norm(b))
+    if bn == 0.0:
+        return x, 0, "converged"
+    if float(np.linalg.norm(r)) <= rtol * bn:
+        return x, 0, "converged"
+    z = M @ r
+    p = z.copy()
+    rz = float(r @ z)
+    for it in range(1, maxiter + 1):
+        q = A @ p
+        pq = float(p @ q)
+        if not pq > 0.0:
+            return x, it, "breakdown"
+        a = rz / pq
+        x += a * p
+        r -= a * q
+        if float(np.linalg.norm(r)) <= rtol * bn:
+            return x, it, "converged"
+        z = M @ r
+        rz_new = float(r @ z)
+        p *= rz_new / rz
+        p += z
+        rz = rz_new
+    return x, maxiter, "maxiter"
+
+
+def voxel_aggregates(ijk: np.ndarray, block=(3, 3, 1)) -> sp.csr_matrix:
+    """Geometric aggregation of grid nodes into boxes of ``block`` voxels (N × N_agg, 0/1 CSR).
+
+    Used as pyamg's first-level aggregation: on the wide SCNI stiffness (~300 block neighbours
+    per node) pyamg's standard aggregation makes very few, very large aggregates and a weak
+    two-level method; voxel boxes give a proper hierarchy and halve the iteration count
+    (docs/linsolve-research.md §2(b)).
+    """
+    key = np.asarray(ijk, np.int64) // np.asarray(block, np.int64)
+    _, agg = np.unique(key, axis=0, return_inverse=True)
+    agg = agg.ravel()
+    n = agg.shape[0]
+    return sp.csr_matrix((np.ones(n), (np.arange(n), agg)), shape=(n, int(agg.max()) + 1))
+
+
+class KrylovAMGSolver(LinearSolver):
+    """CG on the matrix-free tangent, preconditioned by smoothed-aggregation AMG (pyamg).
+
+    Parameters
+    ----------
+    X : (N, 3) float
+        Node coordinates, cm (rigid-body modes).
+    ijk : (N, 3) int
+        Voxel indices (geometric aggregates and the filtered preconditioner matrix).
+    rtol : float
+        Relative residual when the caller gives none.
+    maxiter : int
+        CG iterations per solve.
+    reach : int
+        Blocks of node pairs at most this many voxels apart enter the preconditioner matrix.
+    aggregate : (3,) int
+        First-level aggregates, voxels per axis.
+    theta : float
+        Strength-of-connection threshold.
+    rebuild_growth : float
+        Rebuild the AMG hierarchy (from the current tangent) when a solve needs more than this
+        factor times the iterations per decade of residual reduction measured right after the
+        last rebuild. The matrix-free operator is always the exact tangent, so a stale
+        preconditioner costs iterations, never accuracy.
+    """
 
     name = "cg_amg"
 
-    def __init__(self, X: np.ndarray, rtol: float = 1e-9, maxiter: int = 2000):
+    def __init__(self, X, ijk, rtol: float = 1e-8, maxiter: int = 2000, reach: int = 2, aggregate=(3, 3, 1),
+                 theta: float = 0.1, rebuild_growth: float = 1.5):
         super().__init__()
         self.B = rigid_body_modes(X)
+        self.ijk = np.asarray(ijk)
         self.rtol = rtol
         self.maxiter = maxiter
+        self.reach = reach
+        self.aggregate = aggregate
+        self.theta = theta
+        self.rebuild_growth = rebuild_growth
+        self.smoother = {}
+        self._M = None
+        self._rate0 = None
+        self._stale = True
+        self._system = None
+        self._state = None
+        self.info.update(preconditioner_builds=0, krylov_iterations=0, levels=0, operator_complexity=0.0)
 
-    def factorize(self, K):
+    def _build(self):
         import pyamg
 
         t0 = time.perf_counter()
-        K = sp.bsr_matrix(K, blocksize=(3, 3))
-        self._K = K
-        self._ml = pyamg.smoothed_aggregation_solver(
-            K, B=self.B, symmetry="symmetric", strength=("symmetric", {"theta": 0.0}),
-            smooth=("jacobi", {"omega": 4.0 / 3.0, "degree": 1}), max_coarse=300, keep=False,
+        Kp = self._system.preconditioner_matrix(self._state, self.reach)
+        self.info["preconditioner_nnz_per_row"] = Kp.nnz / Kp.shape[0]
+        ml = pyamg.smoothed_aggregation_solver(
+            Kp, B=self.B, symmetry="symmetric", strength=("symmetric", {"theta": self.theta}),
+            aggregate=[("predefined", {"AggOp": voxel_aggregates(self.ijk, self.aggregate)})] + ["standard"] * 10,
+            smooth=("jacobi", {"omega": 4.0 / 3.0, "degree": 1}), max_coarse=300, keep=False, **self.smoother,
         )
-        self._M = self._ml.aspreconditioner(cycle="V")
-        self.info["setup_s"] = time.perf_counter() - t0
-        self.info["levels"] = len(self._ml.levels)
+        del Kp
+        self._M = ml.aspreconditioner(cycle="V")
+        self.info["levels"] = len(ml.levels)
+        self.info["operator_complexity"] = float(ml.operator_complexity())
+        self.info["preconditioner_builds"] += 1
+        self.info["setup_s"] += time.perf_counter() - t0
+        self._rate0 = None
+        self._stale = False
+        self._fresh = True
 
-    def solve(self, r):
+    def prepare(self, system, state):
+        self.info["setup_s"] = 0.0
+        self._system, self._state = system, state
+        self._A = system.tangent_operator(state)
+        self._fresh = False
+        if self._M is None or self._stale:
+            self._build()
+
+    def solve(self, r, rtol=None):
         t0 = time.perf_counter()
-        r = np.asarray(r, float)
-        count = [0]
-
-        def cb(_):
-            count[0] += 1
-
-        x, flag = spla.cg(self._K, r, rtol=self.rtol, atol=0.0, maxiter=self.maxiter, M=self._M, callback=cb)
-        method = "cg"
-        if flag != 0 or not np.all(np.isfinite(x)):
-            _LOG.debug("CG did not converge (flag %s); trying GMRES", flag)
-            count[0] = 0
-            x, flag = spla.gmres(self._K, r, rtol=self.rtol, atol=0.0, restart=100, maxiter=max(1, self.maxiter // 100),
-                                 M=self._M, callback=cb, callback_type="pr_norm")
-            method = "gmres"
-        self.info["solve_s"] = time.perf_counter() - t0
-        self.info["iterations"] = count[0]
-        self.info["method"] = method
-        if flag != 0 or not np.all(np.isfinite(x)):
-            _LOG.warning("AMG-preconditioned %s did not reach rtol %g in %d iterations; solving this system directly",
-                         method, self.rtol, count[0])
-            lu = spla.splu(sp.csc_matrix(self._K), permc_spec="COLAMD")
-            x = lu.solve(r)
-            method = "direct fallback"
-            self.info["method"] = method
+        setup0 = self.info["setup_s"]
+        rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
+        b = np.asarray(r, float)
+        x, its, status = pcg(self._A, b, self._M, rtol, self.maxiter)
+        total = its
+        if status != "converged" and not self._fresh:
+            _LOG.debug("CG %s after %d iterations with a stale preconditioner; rebuilding it", status, its)
+            self._build()
+            x, its, status = pcg(self._A, b, self._M, rtol, self.maxiter)
+            total += its
+        self.info["iterations"] = total
+        self.info["krylov_iterations"] += total
+        self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
+        if status != "converged":
+            raise SolverError(f"cg_amg: CG {status} after {its} iterations (relative residual target {rtol:.1e}); "
+                              "check the boundary conditions (a free rigid-body motion makes K singular), or use "
+                              "solver.backend: direct on small models")
+        decades = max(np.log10(1.0 / rtol), 1.0)
+        rate = its / decades
+        if self._rate0 is None:
+            self._rate0 = max(rate, 1.0)
+        elif rate > self.rebuild_growth * self._rate0:
+            self._stale = True  # rebuilt at the next prepare(), from that state's tangent
         return x
 
 
-def make_solver(backend: str, X: np.ndarray, *, auto_direct_max_dofs: int = 90000, rtol: float = 1e-10,
+def make_solver(backend: str, X: np.ndarray, *, auto_direct_max_dofs: int = 12000, rtol: float = 1e-10,
                 maxiter: int = 2000, reuse: bool = False, ijk=None, width=(4, 4, 4)) -> LinearSolver:
     """Create a backend by name (``auto``, ``direct``, ``cg_amg``) for the nodes ``X`` (N, 3).
 
-    ``ijk`` (grid indices of the nodes) enables the nested-dissection ordering of the direct solver;
-    ``width`` is its separator thickness per axis (cells).
+    ``ijk`` (grid indices of the nodes) enables the nested-dissection ordering of the direct solver
+    and is required by ``cg_amg``; ``width`` is the separator thickness per axis (cells).
     """
     ndof = 3 * np.asarray(X).shape[0]
     if backend == "auto":
@@ -302,5 +421,7 @@ def make_solver(backend: str, X: np.ndarray, *, auto_direct_max_dofs: int = 9000
     if backend == "direct":
         return DirectSolver(reuse=reuse, rtol=rtol, ijk=ijk, width=width)
     if backend == "cg_amg":
-        return AMGSolver(X, rtol=rtol, maxiter=maxiter)
+        if ijk is None:
+            raise ValueError("cg_amg needs the voxel indices ijk of the nodes")
+        return KrylovAMGSolver(X, ijk, rtol=rtol, maxiter=maxiter)
     raise ValueError(f"unknown linear solver backend {backend!r}: expected auto, direct or cg_amg")

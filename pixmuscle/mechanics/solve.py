@@ -37,7 +37,8 @@ from .config import SolveConfig
 from .linsolve import make_solver
 from .results import Results, cauchy_voigt, max_principal
 from .scni import SCNI, build_scni, cell_faces, face_incidence, support_radius
-from .stabilization import stabilization_stiffness
+from .stabilization import stabilization_operators, stabilization_stiffness
+from .tangent import MatrixFreeTangent, ProductForm, spd_surrogate
 
 _LOG = logging.getLogger(__name__)
 
@@ -70,40 +71,80 @@ class State:
 class MechanicalSystem:
     """Discrete equilibrium equations of a pixel-point model (see the module docstring).
 
+    The stiffness is available in three forms, each built on first use:
+
+    * :meth:`stiffness`: the assembled consistent tangent (BSR), for direct solvers;
+    * :meth:`tangent_operator`: the same tangent as a matrix-free operator (:mod:`.tangent`);
+    * :meth:`preconditioner_matrix`: a filtered, node-wise positive stand-in, for AMG.
+
     Parameters
     ----------
     model : Model
     scni : SCNI
     materials : dict tissue code → material
     constraints : Constraints
-    assembler : Assembler
-    stab_data : (nnzb, 3, 3) float or None
-        Constant NSNI stiffness blocks (N/cm).
+    A0 : (N, 3, 3, 3, 3) float
+        Reference tangent A(F = I) per node, N/cm² (moduli of the stabilisation).
+    stabilization : StabilizationConfig or None
+        NSNI settings (``None``: no stabilisation).
     """
 
-    def __init__(self, model: Model, scni: SCNI, materials: dict, constraints: Constraints, assembler: Assembler,
-                 stab_data: np.ndarray | None):
+    def __init__(self, model: Model, scni: SCNI, materials: dict, constraints: Constraints, A0: np.ndarray,
+                 stabilization=None):
         self.model = model
         self.scni = scni
         self.n_nodes = model.n_nodes
         self.constraints = constraints
-        self.assembler = assembler
         self.fiber = np.asarray(model.fiber, float)
+        self.A0 = A0
+        self.stabilization = stabilization
         self.groups = []
         tissue = np.asarray(model.tissue)
         for code in NODE_TISSUES:
             idx = np.flatnonzero(tissue == code)
             if idx.size:
                 self.groups.append((code, materials[code], idx))
-        self.g = assembler.on_support(scni.G)
-        pen = assembler.zeros()
-        for j, Kj in enumerate(constraints.stiffness(self.n_nodes)):
-            assembler.align_scalar(Kj, j, j, pen)
-        self.stab_data = stab_data
-        self.K_stab = assembler.matrix(stab_data).tocsr() if stab_data is not None else None
-        self.base = pen if stab_data is None else pen + stab_data
+        self.penalty = constraints.stiffness(self.n_nodes)
+        self.stab = None
+        if stabilization is not None:
+            H, C = stabilization_operators(scni, A0, coefficient=stabilization.coefficient,
+                                           modulus=stabilization.modulus)
+            self.stab = (ProductForm(H), C)
+        self._main = None
+        self._support = None
+        self._g = None
+        self._assemblers = {}
         self.atol = 0.0
         self.timings = {"material_s": 0.0, "assembly_s": 0.0, "n_evaluate": 0, "n_assembly": 0}
+
+    def stabilization_force(self, d: np.ndarray) -> np.ndarray | None:
+        """K_s d (N, 3), N; ``None`` without stabilisation."""
+        if self.stab is None:
+            return None
+        return self.stab[0].apply(self.stab[1], np.asarray(d, float).reshape(-1, 3))
+
+    def assembler(self, reach: int | None = None) -> tuple[Assembler, np.ndarray]:
+        """Block pattern (full, or filtered to ``reach`` voxels) and its constant data (penalty + NSNI)."""
+        if reach not in self._assemblers:
+            t0 = time.perf_counter()
+            if self._support is None:
+                self._support = support_pattern(face_incidence(self.scni.faces, self.scni.volume), self.scni.psi_faces)
+            wide = None
+            if reach is not None:  # nodes whose enlarged support couples further than `reach`
+                nominal = np.min(self.scni.support, axis=0)
+                wide = np.any(self.scni.support > nominal * (1 + 1e-9), axis=1)
+            asm = Assembler(self._support, ijk=self.model.ijk, reach=reach, wide=wide)
+            if self._g is None:
+                self._g = asm.on_support(self.scni.G)
+            base = asm.zeros()
+            for j, Kj in enumerate(self.penalty):
+                asm.align_scalar(Kj, j, j, base)
+            if self.stabilization is not None:
+                stabilization_stiffness(self.scni, asm, self.A0, coefficient=self.stabilization.coefficient,
+                                        modulus=self.stabilization.modulus, out=base)
+            self._assemblers[reach] = (asm, base)
+            self.timings["pattern_s"] = self.timings.get("pattern_s", 0.0) + time.perf_counter() - t0
+        return self._assemblers[reach]
 
     def _material_kw(self, code, idx, alpha):
         if code == MUSCLE:
@@ -129,8 +170,9 @@ class MechanicalSystem:
         F = self.scni.deformation_gradient(d)
         P, A = self.material_response(F, alpha, tangent=True)
         fi = self.scni.internal_force(P)
-        if self.K_stab is not None:
-            fi = fi + (self.K_stab @ d.reshape(-1)).reshape(-1, 3)
+        fs = self.stabilization_force(d)
+        if fs is not None:
+            fi = fi + fs
         fp = self.constraints.force(d, t)
         r = -(fi + fp)
         scale = max(float(np.linalg.norm(fi)), float(np.linalg.norm(fp)))
@@ -140,13 +182,36 @@ class MechanicalSystem:
 
     def stiffness(self, state: State) -> sp.bsr_matrix:
         """Consistent tangent K = Σ_L V_L B̃ᵀ A_L B̃ + K_stab + K_pen (BSR, 3N × 3N), N/cm."""
+        asm, base = self.assembler(None)
         t0 = time.perf_counter()
-        data = self.base.copy()
-        self.assembler.fill(self.g, state.A, self.scni.volume, out=data)
-        K = self.assembler.matrix(data)
+        data = base.copy()
+        asm.fill(self._g, state.A, self.scni.volume, out=data)
+        K = asm.matrix(data)
         self.timings["assembly_s"] += time.perf_counter() - t0
         self.timings["n_assembly"] += 1
         return K
+
+    def tangent_operator(self, state: State) -> MatrixFreeTangent:
+        """The consistent tangent of :meth:`stiffness` as a matrix-free operator (3N × 3N), N/cm."""
+        if self._main is None:
+            self._main = ProductForm([self.scni.G])
+        C = (self.scni.volume[:, None, None] * state.A.reshape(-1, 9, 9))
+        return MatrixFreeTangent(self._main, C, stab=self.stab, penalty=self.penalty)
+
+    def preconditioner_matrix(self, state: State, reach: int = 2) -> sp.bsr_matrix:
+        """Filtered positive stand-in of the tangent for preconditioning (BSR, 3N × 3N), N/cm.
+
+        Only blocks between nodes at most ``reach`` voxels apart are kept, and each node's
+        tangent is replaced by :func:`.tangent.spd_surrogate`; penalty and NSNI terms are
+        included (filtered). docs/linsolve-research.md §2(c) explains the choice.
+        """
+        asm, base = self.assembler(reach)
+        t0 = time.perf_counter()
+        data = base.copy()
+        asm.fill(self._g, spd_surrogate(state.A), self.scni.volume, out=data)
+        self.timings["assembly_s"] += time.perf_counter() - t0
+        self.timings["n_assembly"] += 1
+        return asm.matrix(data)
 
     def strain_energy(self, F: np.ndarray, alpha: float) -> float:
         """Σ_L V_L W(F_L), N·cm."""
@@ -158,9 +223,9 @@ class MechanicalSystem:
     def energy(self, state: State) -> float:
         """Total potential Π = Σ V W + ½ dᵀ K_stab d + Π_pen, N·cm."""
         e = self.strain_energy(state.F, state.alpha) + self.constraints.energy(state.d, state.t)
-        if self.K_stab is not None:
-            dv = state.d.reshape(-1)
-            e += 0.5 * float(dv @ (self.K_stab @ dv))
+        fs = self.stabilization_force(state.d)
+        if fs is not None:
+            e += 0.5 * float(np.vdot(state.d, fs))
         return e
 
     def cauchy(self, state: State) -> np.ndarray:
@@ -218,9 +283,6 @@ def build_system(model: Model, cfg: SolveConfig) -> tuple[MechanicalSystem, dict
     sup, info["supports_enlarged"] = node_supports(model, cfg)
     scni = build_scni(model.X, model.ijk, model.spacing, sup, face_gradients=stab, **rk_kw)
     info["scni_s"] = time.perf_counter() - t0
-    t1 = time.perf_counter()
-    assembler = Assembler(support_pattern(face_incidence(scni.faces, scni.volume), scni.psi_faces))
-    info["pattern_s"] = time.perf_counter() - t1
     materials = make_materials(cfg.materials)
     ident = np.broadcast_to(np.eye(3), (model.n_nodes, 3, 3))
     present = [c for c in NODE_TISSUES if np.any(model.tissue == c)]
@@ -229,22 +291,17 @@ def build_system(model: Model, cfg: SolveConfig) -> tuple[MechanicalSystem, dict
         idx = np.flatnonzero(model.tissue == c)
         kw = {"fiber": model.fiber[idx], "activation": 0.0} if c == MUSCLE else {}
         A0[idx] = materials[c].stress_tangent(np.ascontiguousarray(ident[idx]), **kw)[1]
-    t2 = time.perf_counter()
-    stab_data = None
-    if stab:
-        stab_data = stabilization_stiffness(scni, assembler, A0, coefficient=cfg.stabilization.coefficient,
-                                            modulus=cfg.stabilization.modulus)
-    info["stabilization_s"] = time.perf_counter() - t2
     t3 = time.perf_counter()
     beta = cfg.penalty.beta if cfg.penalty.beta is not None else penalty_number(A0, model.spacing, cfg.penalty.factor)
     constraints = build_constraints(model, list(cfg.boundary_conditions), scni.faces, sup, beta, at=cfg.penalty.at, **rk_kw)
-    system = MechanicalSystem(model, scni, materials, constraints, assembler, stab_data)
     info["penalty_s"] = time.perf_counter() - t3
+    t2 = time.perf_counter()
+    system = MechanicalSystem(model, scni, materials, constraints, A0, cfg.stabilization if stab else None)
+    info["stabilization_s"] = time.perf_counter() - t2
     # absolute residual floor (N): round-off level of the penalty forces β w (u − g)
     system.atol = 1e-15 * beta * float(np.prod(model.spacing)) * max(1, model.n_nodes) ** 0.5
     nominal = support_radius(model.spacing, cfg.support.a_over_h)
-    info.update(beta=beta, support_cm=nominal.tolist(), nnz_blocks=assembler.nnzb, nnz=assembler.nnz,
-                nnz_per_row=assembler.nnz / (3 * model.n_nodes), n_nodes=model.n_nodes,
+    info.update(beta=beta, support_cm=nominal.tolist(), n_nodes=model.n_nodes,
                 n_constraint_points=int(constraints.points.shape[0]), build_s=time.perf_counter() - t0)
     if not constraints.points.shape[0]:
         _LOG.warning("no boundary condition constrains any node: the stiffness is singular")
@@ -317,14 +374,14 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None) -> Result
     class _Timed:
         name = linsolver.name
 
-        def factorize(self, K):
+        def prepare(self, system, state):
             t0 = time.perf_counter()
-            linsolver.factorize(K)
+            linsolver.prepare(system, state)
             lin_time["setup_s"] += time.perf_counter() - t0
 
-        def solve(self, r):
+        def solve(self, r, rtol=None):
             t0 = time.perf_counter()
-            x = linsolver.solve(r)
+            x = linsolver.solve(r, rtol=rtol)
             lin_time["solve_s"] += time.perf_counter() - t0
             lin_time["iterations"].append(linsolver.info["iterations"])
             return x
@@ -357,8 +414,13 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None) -> Result
     info.update(total_s=time.perf_counter() - t_start, linear_setup_s=lin_time["setup_s"],
                 linear_solve_s=lin_time["solve_s"], linear_iterations=lin_time["iterations"],
                 factorizations=int(linsolver.info.get("factorizations", 0)),
+                preconditioner_builds=int(linsolver.info.get("preconditioner_builds", 0)),
+                pattern_s=system.timings.get("pattern_s", 0.0),
                 assembly_s=system.timings["assembly_s"], n_assembly=system.timings["n_assembly"],
                 material_s=system.timings["material_s"], n_evaluate=system.timings["n_evaluate"])
+    for reach, (asm, _) in system._assemblers.items():
+        key = "nnz_per_row" if reach is None else "preconditioner_nnz_per_row"
+        info[key] = round(asm.nnz / (3 * model.n_nodes), 1)
     results = Results.from_steps(model, steps, failed_rows=failed_rows, status=status, n_steps=cfg.steps,
                                  constrained=system.constraints.constrained_components(), info=info,
                                  sign_convention=SIGN_CONVENTION)

@@ -67,6 +67,41 @@ def reference_shear_modulus(A0: np.ndarray) -> np.ndarray:
     return np.mean([A0[:, i, J, i, J] for i, J in off], axis=0)
 
 
+def stabilization_modulus(A0: np.ndarray, modulus: str = "shear") -> np.ndarray:
+    """Modulus A_s of the stabilisation term per node, (N, 3, 3, 3, 3), N/cm².
+
+    ``"shear"``: A_s = 2 μ_L I (μ_L from :func:`reference_shear_modulus`); ``"tangent"``: A_s = A0.
+    """
+    if modulus == "shear":
+        mu = reference_shear_modulus(A0)
+        As = np.zeros((A0.shape[0], 3, 3, 3, 3))
+        for i in range(3):
+            for J in range(3):
+                As[:, i, J, i, J] = 2.0 * mu
+        return As
+    if modulus == "tangent":
+        return np.asarray(A0, float)
+    raise ValueError(f"unknown stabilisation modulus {modulus!r}: expected 'shear' or 'tangent'")
+
+
+def stabilization_operators(scni: SCNI, A0: np.ndarray, *, coefficient: float = 1.0,
+                            modulus: str = "shear") -> tuple[list, np.ndarray]:
+    """The NSNI term in product form, K_s = Σ_k H_kᵀ (c M_k A_s) H_k (for matrix-free products).
+
+    Returns
+    -------
+    groups : list of 3 lists of 3 CSR (N × N), cm⁻²
+        ``groups[k][J] = H[k][J]`` (:func:`gradient_differences`).
+    C : (3N, 9, 9) float
+        c · M_Lk · A_s,L per axis k (k-major), N·cm³, index 3i + J.
+    """
+    n = scni.n_nodes
+    As = stabilization_modulus(A0, modulus).reshape(n, 9, 9)
+    M = second_moments(scni.volume, scni.spacing)
+    C = np.concatenate([coefficient * M[:, k, None, None] * As for k in range(3)])
+    return gradient_differences(scni), C
+
+
 def stabilization_stiffness(scni: SCNI, assembler: Assembler, A0: np.ndarray, *, coefficient: float = 1.0,
                             modulus: str = "shear", out: np.ndarray | None = None) -> np.ndarray:
     """Block data of the constant NSNI stiffness K_s (added to ``out``), N/cm.
@@ -76,6 +111,7 @@ def stabilization_stiffness(scni: SCNI, assembler: Assembler, A0: np.ndarray, *,
     scni : SCNI
         Built with ``face_gradients=True``.
     assembler : Assembler
+        Full or filtered block pattern.
     A0 : (N, 3, 3, 3, 3) float
         Reference tangent A(F = I) per node, N/cm².
     coefficient : float
@@ -91,17 +127,7 @@ def stabilization_stiffness(scni: SCNI, assembler: Assembler, A0: np.ndarray, *,
         out = assembler.zeros()
     if coefficient == 0.0:
         return out
-    n = scni.n_nodes
-    if modulus == "shear":
-        mu = reference_shear_modulus(A0)
-        As = np.zeros((n, 3, 3, 3, 3))
-        for i in range(3):
-            for J in range(3):
-                As[:, i, J, i, J] = 2.0 * mu
-    elif modulus == "tangent":
-        As = np.asarray(A0, float)
-    else:
-        raise ValueError(f"unknown stabilisation modulus {modulus!r}: expected 'shear' or 'tangent'")
+    As = stabilization_modulus(A0, modulus)
     H = gradient_differences(scni)
     M = second_moments(scni.volume, scni.spacing)
     for k in range(3):

@@ -1,0 +1,155 @@
+"""Matrix-free products with the nodally integrated stiffness (paper eqs. 17–20).
+
+With SCNI every integration point is a node L, and the tangent stiffness is a sum of products
+
+    K = Σ_L V_L B̃_Lᵀ A_L B̃_L  =  Gᵀ C G,
+
+with G the stacked smoothed-gradient operators (:mod:`.scni`, 3N × N for the three derivative
+directions J, applied to the three displacement components i) and C block diagonal with one
+9×9 matrix per node (C_L = V_L A_L, index 3i + J). The NSNI stabilisation has the same form with
+the gradient-difference operators (:mod:`.stabilization`). So K v never needs K: it is one
+sparse product with G (3 columns), a 9×9 contraction per node and one product with Gᵀ. That
+costs about as much as a product with the assembled K and holds ~5 % of its memory
+(docs/linsolve-research.md §1), and the product is always with the exact current tangent.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+
+@numba.njit(cache=True, parallel=True)
+def _contract(C, g, n, out):  # pragma: no cover - compiled
+    """out[q, J, L, i] = Σ_{k, K} C[q·n + L, 3i + J, 3k + K] g[q, K, L, k] for every group q and node L."""
+    ng = g.shape[0]
+    for p in numba.prange(ng * n):
+        q = p // n
+        L = p - q * n
+        for i in range(3):
+            for J in range(3):
+                s = 0.0
+                a = 3 * i + J
+                for k in range(3):
+                    for K in range(3):
+                        s += C[p, a, 3 * k + K] * g[q, K, L, k]
+                out[q, J, L, i] = s
+
+
+class ProductForm:
+    """Σ_q Σ_L B_q,Lᵀ C_q,L B_q,L for groups q of three (N × N) gradient-like operators.
+
+    Parameters
+    ----------
+    groups : list of lists of 3 sparse (N × N)
+        ``groups[q][J] @ u`` is the derivative ∂u/∂X_J (or a gradient-like quantity) at every
+        node for nodal values ``u`` (N,) or (N, 3).
+
+    Notes
+    -----
+    The operators are stacked once into a CSR matrix B (3·Q·N × N) and its transpose; each
+    product :meth:`apply` is ``Bᵀ (C : (B v))`` with two sparse-times-dense products and one
+    compiled per-node contraction.
+    """
+
+    def __init__(self, groups):
+        self.n_groups = len(groups)
+        self.n = groups[0][0].shape[1]
+        B = sp.vstack([sp.csr_matrix(M) for grp in groups for M in grp], format="csr")
+        if B.nnz < np.iinfo(np.int32).max:
+            B.indices = B.indices.astype(np.int32)
+            B.indptr = B.indptr.astype(np.int32)
+        self.B = B
+        self.BT = B.T.tocsr()
+
+    @property
+    def nbytes(self) -> int:
+        """Memory of the stacked operators, bytes."""
+        return sum(M.data.nbytes + M.indices.nbytes + M.indptr.nbytes for M in (self.B, self.BT))
+
+    def gradients(self, V: np.ndarray) -> np.ndarray:
+        """Per-group gradients of the nodal field V (N, 3): shape (Q, N, 3, 3), index [q, L, i, J]."""
+        g = (self.B @ V).reshape(self.n_groups, 3, self.n, 3)
+        return g.transpose(0, 2, 3, 1)
+
+    def apply(self, C: np.ndarray, V: np.ndarray) -> np.ndarray:
+        """Σ_q B_qᵀ (C_q : (B_q V)).
+
+        Parameters
+        ----------
+        C : (Q·N, 9, 9) float
+            Per-node moduli of every group, group-major, index 3i + J.
+        V : (N, 3) float
+
+        Returns
+        -------
+        (N, 3) float
+        """
+        g = np.ascontiguousarray((self.B @ V).reshape(self.n_groups, 3, self.n, 3))
+        t = np.empty_like(g)
+        _contract(C, g, self.n, t)
+        return self.BT @ t.reshape(-1, 3)
+
+
+class MatrixFreeTangent(spla.LinearOperator):
+    """The stiffness K (3N × 3N, N/cm) as a linear operator: K v = Gᵀ C G v + K_stab v + K_pen v.
+
+    Parameters
+    ----------
+    main : ProductForm
+        SCNI gradient operators (one group).
+    C : (N, 9, 9) float
+        V_L A_L per node (N·cm), the current material tangent times the cell volume.
+    stab : tuple (ProductForm, (3N, 9, 9) float) or None
+        NSNI operators and their constant moduli.
+    penalty : list of 3 sparse (N × N) or None
+        Penalty stiffness per displacement component.
+    """
+
+    def __init__(self, main: ProductForm, C: np.ndarray, stab=None, penalty=None):
+        n = main.n
+        super().__init__(np.float64, (3 * n, 3 * n))
+        self.main = main
+        self.C = np.ascontiguousarray(C, dtype=np.float64)
+        self.stab = stab
+        self.penalty = penalty
+
+    def _matvec(self, v):
+        V = np.asarray(v, dtype=np.float64).reshape(-1, 3)
+        y = self.main.apply(self.C, V)
+        if self.stab is not None:
+            y += self.stab[0].apply(self.stab[1], V)
+        if self.penalty is not None:
+            for j in range(3):
+                y[:, j] += self.penalty[j] @ V[:, j]
+        return y.reshape(-1)
+
+    def _matmat(self, X):
+        return np.column_stack([self._matvec(x) for x in np.asarray(X).T])
+
+
+def spd_surrogate(A: np.ndarray) -> np.ndarray:
+    """A symmetric positive semi-definite stand-in for each node's 9×9 tangent.
+
+    The symmetric part's eigenvalues are replaced by their absolute values. At α > 0 the active
+    fibre stress makes a few eigenvalues of a muscle node's tangent slightly negative (geometric
+    stiffness of the deviatoric active stress), although the assembled K stays positive
+    definite; the AMG preconditioner is built from this surrogate, which is positive
+    semi-definite node by node.
+
+    Parameters
+    ----------
+    A : (N, 3, 3, 3, 3) or (N, 9, 9) float
+
+    Returns
+    -------
+    (N, 3, 3, 3, 3) float
+    """
+    n = A.shape[0]
+    A9 = np.asarray(A, float).reshape(n, 9, 9)
+    sym = 0.5 * (A9 + A9.transpose(0, 2, 1))
+    lam, Q = np.linalg.eigh(sym)
+    out = np.matmul(Q * np.abs(lam)[:, None, :], Q.transpose(0, 2, 1))
+    return out.reshape(n, 3, 3, 3, 3)
