@@ -118,6 +118,60 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
     }
 
 
+def probe(size: str, penalty: float | None) -> dict:
+    """One Newton system of the first load step at ``size`` without the sweep: build, preconditioner
+    set-up, matrix-free product, V-cycle, and CG to the loosest (1e-2) and a tight (1e-8) tolerance.
+
+    For sizes whose whole sweep does not fit the session; the sweep time is then estimated from
+    the measured per-iteration costs (docs/performance.md says how).
+    """
+    from pixmuscle.config import parse_section
+    from pixmuscle.mechanics.config import SolveConfig
+    from pixmuscle.mechanics.linsolve import make_solver, pcg
+    from pixmuscle.mechanics.solve import build_system
+    from pixmuscle.model.build import model_from_labels
+
+    out = {"size": size, "probe": True}
+    t = time.perf_counter()
+    labels, fibers, h = leg_labels(*SIZES[size])
+    model = model_from_labels(labels, h, fibers=fibers, fiber_fallback="muscle_mean")
+    out.update(nodes=model.n_nodes, dofs=3 * model.n_nodes, model_s=round(time.perf_counter() - t, 1))
+    sec = {"boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]},
+                                   {"nodes": "bone_surface", "fix": ["x", "y"]}]}
+    if penalty is not None:
+        sec["penalty"] = {"factor": penalty}
+    cfg = parse_section(SolveConfig, sec, "solve")
+    t = time.perf_counter()
+    system, info = build_system(model, cfg)
+    out["build_s"] = round(time.perf_counter() - t, 1)
+    state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.095)
+    t = time.perf_counter()
+    system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.095)
+    out["residual_evaluation_s"] = round(time.perf_counter() - t, 2)
+    solver = make_solver("cg_amg", model.X, ijk=model.ijk)
+    t = time.perf_counter()
+    solver.prepare(system, state)
+    out["preconditioner_setup_s"] = round(time.perf_counter() - t, 1)
+    out.update(levels=solver.info["levels"], operator_complexity=round(solver.info["operator_complexity"], 2),
+               preconditioner_nnz_per_row=round(solver.info["preconditioner_nnz_per_row"], 1),
+               pattern_s=round(system.timings.get("pattern_s", 0.0), 1))
+    v = np.random.default_rng(0).standard_normal(3 * model.n_nodes)
+    A, M = solver._A, solver._M
+    for name, f in (("matvec_s", lambda: A @ v), ("vcycle_s", lambda: M @ v)):
+        f()
+        t = time.perf_counter()
+        for _ in range(3):
+            f()
+        out[name] = round((time.perf_counter() - t) / 3, 3)
+    r = state.r.ravel()
+    for tol in (1e-2, 1e-8):
+        t = time.perf_counter()
+        _, its, status = pcg(A, r, M, tol, 3000)
+        out[f"cg_{tol:g}"] = {"iterations": its, "status": status, "s": round(time.perf_counter() - t, 1)}
+    out["peak_rss_GB"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2)
+    return out
+
+
 EXPONENT_KEYS = ("build_s", "assembly_s_per_iteration", "linear_s_per_iteration", "cg_iterations_per_newton",
                  "newton_iterations_total", "sweep_s", "peak_rss_GB")
 
@@ -175,7 +229,16 @@ def main(argv=None):
     p.add_argument("--alpha", type=float, default=0.95)
     p.add_argument("--penalty", type=float, default=None, help="penalty factor (default: the solver default)")
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)  # internal: run one case, print JSON
+    p.add_argument("--probe", default=None, metavar="SIZE",
+                   help="measure one Newton system at SIZE (no sweep); writes results/bench_solve_probe_SIZE.json")
     args = p.parse_args(argv)
+    if args.probe:
+        res = probe(args.probe, args.penalty)
+        res["command"] = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
+        OUT.mkdir(parents=True, exist_ok=True)
+        (OUT / f"bench_solve_probe_{args.probe}.json").write_text(json.dumps(res, indent=1))
+        print(json.dumps(res, indent=1))
+        return 0
     if args.one:
         size, backend = args.one.split(":")
         print("RESULT " + json.dumps(run_case(size, backend, args.steps, args.alpha, args.penalty)), flush=True)

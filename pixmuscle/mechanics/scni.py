@@ -220,7 +220,7 @@ class SCNI:
     dpsi_faces : list of 3 CSR (F, N) or None
         ∂Ψ_I/∂X_k at the face centres (needed by the NSNI stabilisation).
     spacing : (3,) float, cm
-    support : (3,) float, cm
+    support : (3,) or (N, 3) float, cm
         RK support radius per axis.
     """
 
@@ -283,7 +283,7 @@ def build_scni(X, ijk, spacing, support, *, kernel="cubic", order=1, support_sha
         Voxel indices (cells are ``X ± spacing/2``).
     spacing : (3,) float
         Voxel size, cm.
-    support : (3,) float
+    support : (3,) or (N, 3) float
         RK support radius per axis, cm (see :func:`support_radius`).
     kernel, order, support_shape
         Passed to :func:`pixmuscle.rk.shape_functions`.

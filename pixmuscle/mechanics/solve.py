@@ -130,9 +130,9 @@ class MechanicalSystem:
             if self._support is None:
                 self._support = support_pattern(face_incidence(self.scni.faces, self.scni.volume), self.scni.psi_faces)
             wide = None
-            if reach is not None:  # nodes whose enlarged support couples further than `reach`
-                nominal = np.min(self.scni.support, axis=0)
-                wide = np.any(self.scni.support > nominal * (1 + 1e-9), axis=1)
+            sup = np.atleast_2d(self.scni.support)
+            if reach is not None and sup.shape[0] == self.n_nodes:  # enlarged supports couple further than `reach`
+                wide = np.any(sup > sup.min(axis=0) * (1 + 1e-9), axis=1)
             asm = Assembler(self._support, ijk=self.model.ijk, reach=reach, wide=wide)
             if self._g is None:
                 self._g = asm.on_support(self.scni.G)
