@@ -343,7 +343,6 @@ class KrylovAMGSolver(LinearSolver):
         self.aggregate = aggregate
         self.theta = theta
         self.rebuild_growth = rebuild_growth
-        self.smoother = {}
         self._M = None
         self._rate0 = None
         self._stale = True
@@ -360,7 +359,7 @@ class KrylovAMGSolver(LinearSolver):
         ml = pyamg.smoothed_aggregation_solver(
             Kp, B=self.B, symmetry="symmetric", strength=("symmetric", {"theta": self.theta}),
             aggregate=[("predefined", {"AggOp": voxel_aggregates(self.ijk, self.aggregate)})] + ["standard"] * 10,
-            smooth=("jacobi", {"omega": 4.0 / 3.0, "degree": 1}), max_coarse=300, keep=False, **self.smoother,
+            smooth=("jacobi", {"omega": 4.0 / 3.0, "degree": 1}), max_coarse=300, keep=False,
         )
         del Kp
         self._M = ml.aspreconditioner(cycle="V")
