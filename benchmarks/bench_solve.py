@@ -20,8 +20,11 @@ Writes ``benchmarks/results/bench_solve.json`` and ``bench_solve.md``.
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_solve.py                       # 5k, 20k, 75k with cg_amg, 5k direct
-    .venv/bin/python benchmarks/bench_solve.py --cases 5k:cg_amg 5k:direct
+    .venv/bin/python benchmarks/bench_solve.py                       # the DEFAULT_CASES below
+    .venv/bin/python benchmarks/bench_solve.py --cases 5k:cg_amg 5k:direct 20k:direct_reuse
+
+Backends (``--cases SIZE:BACKEND``): ``direct`` (PARDISO when MKL is installed, else SuperLU),
+``direct_reuse`` (the same, kept factors precondition CG), ``superlu``, ``cg_amg``.
 """
 
 from __future__ import annotations
@@ -41,7 +44,14 @@ import numpy as np
 OUT = pathlib.Path(__file__).parent / "results"
 SPACING = (0.15625, 0.15625, 0.5)
 SIZES = {"2k": (0.40, 5), "5k": (0.50, 8), "10k": (0.62, 11), "20k": (0.72, 15), "75k": (1.04, 25)}
-DEFAULT_CASES = ["5k:direct", "5k:cg_amg", "20k:cg_amg", "75k:cg_amg"]
+DEFAULT_CASES = ["5k:direct", "5k:direct_reuse", "5k:cg_amg", "10k:direct_reuse", "20k:direct_reuse", "20k:cg_amg"]
+# backend tokens of --cases → solve.solver settings
+BACKENDS = {
+    "direct": {"backend": "direct"},                                         # PARDISO if MKL is installed
+    "direct_reuse": {"backend": "direct", "reuse_factorization": True},      # kept factors precondition CG
+    "superlu": {"backend": "direct", "direct_engine": "superlu"},
+    "cg_amg": {"backend": "cg_amg"},
+}
 
 
 def leg_labels(scale: float, n_slices: int, seed: int = 0):
@@ -79,7 +89,7 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
         "activation": {"from": 0.0, "to": alpha_to},
         "boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]},
                                 {"nodes": "bone_surface", "fix": ["x", "y"]}],
-        "solver": {"backend": backend},
+        "solver": BACKENDS[backend],
     }
     if penalty is not None:
         sec["penalty"] = {"factor": penalty}
@@ -102,11 +112,14 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
         "n_assembly": int(info["n_assembly"]),
         "linear_setup_s_total": round(info["linear_setup_s"], 2),
         "linear_s_per_iteration": round((info["linear_setup_s"] + info["linear_solve_s"]) / max(n_it, 1), 3),
-        "cg_iterations_total": int(np.sum(lin)) if backend == "cg_amg" else None,
-        "cg_iterations_per_newton": round(float(np.mean(lin)), 1) if backend == "cg_amg" else None,
+        "cg_iterations_total": int(np.sum(lin)) if backend != "direct" else None,
+        "cg_iterations_per_newton": round(float(np.mean(lin)), 1) if backend != "direct" else None,
         "cg_s_per_iteration": round(info["linear_solve_s"] / max(np.sum(lin), 1), 4) if backend == "cg_amg" else None,
         "preconditioner_builds": info.get("preconditioner_builds"),
         "factorizations": info.get("factorizations"),
+        "direct_engine": info.get("linear_engine"),
+        "factor_nnz_per_row": round(info["factor_nnz"] / (3 * model.n_nodes), 1) if info.get("factor_nnz") else None,
+        "krylov_iterations_total": info.get("krylov_iterations"),
         "nnz_per_row": info.get("nnz_per_row"),
         "preconditioner_nnz_per_row": info.get("preconditioner_nnz_per_row"),
         "newton_iterations_per_step": res.iterations.tolist(), "newton_iterations_total": n_it,
@@ -172,6 +185,39 @@ def probe(size: str, penalty: float | None) -> dict:
     return out
 
 
+def probe_direct(size: str, penalty: float | None) -> dict:
+    """PARDISO's symbolic analysis of the full tangent at ``size``: predicted factor size and
+    flops of one factorisation, without factorising (for sizes where that would not fit)."""
+    from pixmuscle.config import parse_section
+    from pixmuscle.mechanics.config import SolveConfig
+    from pixmuscle.mechanics.pardiso import PardisoLDLT, SymmetricPattern
+    from pixmuscle.mechanics.solve import build_system
+    from pixmuscle.model.build import model_from_labels
+
+    out = {"size": size, "probe": "direct"}
+    labels, fibers, h = leg_labels(*SIZES[size])
+    model = model_from_labels(labels, h, fibers=fibers, fiber_fallback="muscle_mean")
+    sec = {"boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]},
+                                   {"nodes": "bone_surface", "fix": ["x", "y"]}]}
+    if penalty is not None:
+        sec["penalty"] = {"factor": penalty}
+    system, _ = build_system(model, parse_section(SolveConfig, sec, "solve"))
+    state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.095)
+    t = time.perf_counter()
+    K = system.stiffness(state)
+    out.update(nodes=model.n_nodes, dofs=3 * model.n_nodes, assembly_s=round(time.perf_counter() - t, 1),
+               nnz_per_row=round(K.nnz / K.shape[0], 1))
+    t = time.perf_counter()
+    pat = SymmetricPattern(K)
+    del K
+    out["upper_pattern_s"] = round(time.perf_counter() - t, 1)
+    f = PardisoLDLT(pat)
+    out.update(analysis_s=round(f.info["analysis_s"], 1), factor_nnz=int(f.iparm[17]),
+               factor_GB=round(8 * int(f.iparm[17]) / 1e9, 2), factor_gflop=float(f.iparm[18]) / 1e3,
+               peak_rss_GB=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2))
+    return out
+
+
 EXPONENT_KEYS = ("build_s", "assembly_s_per_iteration", "linear_s_per_iteration", "cg_iterations_per_newton",
                  "newton_iterations_total", "sweep_s", "peak_rss_GB")
 
@@ -228,10 +274,22 @@ def main(argv=None):
     p.add_argument("--steps", type=int, default=10)
     p.add_argument("--alpha", type=float, default=0.95)
     p.add_argument("--penalty", type=float, default=None, help="penalty factor (default: the solver default)")
+    p.add_argument("--append", action="store_true",
+                   help="merge into the existing results file (cases measured again are replaced)")
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)  # internal: run one case, print JSON
     p.add_argument("--probe", default=None, metavar="SIZE",
                    help="measure one Newton system at SIZE (no sweep); writes results/bench_solve_probe_SIZE.json")
+    p.add_argument("--probe-direct", default=None, metavar="SIZE",
+                   help="PARDISO's symbolic analysis of the full tangent at SIZE (predicted factor size and "
+                        "flops); writes results/bench_solve_probe_direct_SIZE.json")
     args = p.parse_args(argv)
+    if args.probe_direct:
+        res = probe_direct(args.probe_direct, args.penalty)
+        res["command"] = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
+        OUT.mkdir(parents=True, exist_ok=True)
+        (OUT / f"bench_solve_probe_direct_{args.probe_direct}.json").write_text(json.dumps(res, indent=1))
+        print(json.dumps(res, indent=1))
+        return 0
     if args.probe:
         res = probe(args.probe, args.penalty)
         res["command"] = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
@@ -245,8 +303,14 @@ def main(argv=None):
         return 0
     OUT.mkdir(parents=True, exist_ok=True)
     cases = []
+    if args.append and (OUT / "bench_solve.json").exists():  # keep earlier cases not measured again now
+        again = set(args.cases)
+        cases = [c for c in json.loads((OUT / "bench_solve.json").read_text())["cases"]
+                 if f"{c.get('size')}:{c.get('backend')}" not in again]
     for case in args.cases:
         print(f"== {case}", flush=True)
+        if case.split(":")[1] not in BACKENDS:
+            p.error(f"unknown backend in {case!r}: expected one of {', '.join(BACKENDS)}")
         cmd = [sys.executable, __file__, "--one", case, "--steps", str(args.steps), "--alpha", str(args.alpha)]
         if args.penalty is not None:
             cmd += ["--penalty", str(args.penalty)]
@@ -255,6 +319,9 @@ def main(argv=None):
         got = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
         if got:
             cases.append(json.loads(got[-1][7:]))
+            cases[-1]["command"] = " ".join([".venv/bin/python benchmarks/bench_solve.py --cases", case]
+                                            + [f"--{k} {v}" for k, v in (("steps", args.steps), ("alpha", args.alpha))]
+                                            + ([f"--penalty {args.penalty}"] if args.penalty is not None else []))
         else:
             size, backend = case.split(":")
             cases.append({"size": size, "backend": backend, "error": (proc.stderr.strip().splitlines() or ["?"])[-1],

@@ -6,6 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 import yaml
 
 from pixmuscle.config import parse_section
@@ -285,16 +286,56 @@ def test_voxel_aggregates_group_boxes():
 
 
 def test_cg_amg_sweep_matches_direct_solver():
-    """The iterative backend reproduces the direct backend's forces over an activation sweep."""
+    """Every backend reproduces the SuperLU forces over an activation sweep: cg_amg, PARDISO
+    (when MKL is installed) and PARDISO with factor reuse (CG on the matrix-free tangent)."""
+    from pixmuscle.mechanics import pardiso
+
     model = _mixed_leg_like_model()
     bcs = [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]}]
+    variants = {"superlu": {"backend": "direct", "direct_engine": "superlu", "reuse_factorization": False},
+                "superlu_reuse": {"backend": "direct", "direct_engine": "superlu"},
+                "cg_amg": {"backend": "cg_amg"}}
+    if pardiso.available():
+        variants["pardiso"] = {"backend": "direct", "direct_engine": "pardiso", "reuse_factorization": False}
+        variants["pardiso_reuse"] = {"backend": "direct", "direct_engine": "pardiso", "reuse_factorization": True}
     out = {}
-    for backend in ("direct", "cg_amg"):
-        res = solve(model, _cfg(steps=3, activation={"from": 0.0, "to": 0.95}, boundary_conditions=bcs,
-                                solver={"backend": backend}))
-        out[backend] = res
+    for name, solver in variants.items():
+        res = solve(model, _cfg(steps=3, activation={"from": 0.0, "to": 0.95}, boundary_conditions=bcs, solver=solver))
+        out[name] = res
         assert res.status == "complete"
-    f_d, f_i = out["direct"].force("z_max"), out["cg_amg"].force("z_max")
+    f_d = out["superlu"].force("z_max")
     assert abs(f_d[-1]) > 1.0
-    assert np.allclose(f_i, f_d, rtol=1e-6, atol=1e-9 * abs(f_d).max())
+    for name in variants:
+        assert np.allclose(out[name].force("z_max"), f_d, rtol=1e-6, atol=1e-9 * abs(f_d).max()), name
+    if "pardiso_reuse" in out:
+        info = out["pardiso_reuse"].info
+        assert info["linear_engine"] == "pardiso" and info["krylov_iterations"] > 0
+        assert info["factorizations"] < out["pardiso"].info["factorizations"]
     assert out["cg_amg"].info["linear_solver"] == "cg_amg" and out["cg_amg"].info["preconditioner_builds"] >= 1
+
+
+@pytest.mark.skipif(not __import__("pixmuscle.mechanics.pardiso", fromlist=["available"]).available(),
+                    reason="MKL PARDISO not installed")
+def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
+    """PARDISO's solution equals SciPy's sparse LU solve; its inertia equals numpy's eigenvalue count."""
+    from pixmuscle.mechanics.pardiso import PardisoLDLT, SymmetricPattern
+    from pixmuscle.verify.mechanics import linear_stiffness
+
+    model = mask_model(np.ones((4, 3, 3), bool), (0.1, 0.1, 0.2))
+    K, _ = linear_stiffness(model, lam=100.0, mu=10.0)
+    n = K.shape[0]
+    r = np.random.default_rng(1).standard_normal((n, 2))
+    ev = np.linalg.eigvalsh(K.toarray())
+    k = n // 3
+    for shift in (1e-2, -0.5 * (ev[k] + ev[k + 1])):  # SPD, then k + 1 negative eigenvalues
+        Ks = sp.bsr_matrix((K + shift * sp.eye(n)).tocsr(), blocksize=(3, 3))
+        pat = SymmetricPattern(Ks)
+        assert np.array_equal(pat.values(Ks), sp.triu(Ks.tocsr()).tocsr().sorted_indices().data)
+        f = PardisoLDLT(pat)
+        f.factorize(pat.values(Ks))
+        x = f.solve(r)
+        x_ref = spla.spsolve(Ks.tocsc(), r)
+        assert np.allclose(x, x_ref, rtol=1e-8, atol=1e-10 * np.abs(x_ref).max())
+        neg = int(np.sum(ev + shift < 0))
+        assert f.info["inertia"] == (n - neg, neg)
+        f.free()

@@ -5,11 +5,14 @@ A backend has ``prepare(system, state)`` (set up for the tangent of a new Newton
 Backends:
 
 ``direct``
-    Sparse LU (SuperLU via :func:`scipy.sparse.linalg.splu`) of the assembled tangent in a
-    geometric nested-dissection order of the voxel grid (:class:`DirectSolver`). Robust for the
-    nearly incompressible tissues and any penalty number, but the SCNI tangent couples each node
-    with ~300 others (±4 voxels), so factor time and memory grow fast: about 16 s and 2.4 GB at
-    5k nodes on one core, out of reach at 20k (docs/performance.md).
+    Sparse direct factorisation of the assembled tangent (:class:`DirectSolver`): MKL PARDISO
+    LDLᵀ when the optional ``mkl`` package is installed (multi-threaded, symbolic analysis once
+    per model), otherwise SciPy's SuperLU in a geometric nested-dissection order. Robust for
+    the nearly incompressible tissues and any penalty number; optionally the factors are kept
+    and precondition CG on the exact tangent (``reuse_factorization``). The SCNI tangent couples
+    each node with ~300 others (±4 voxels), so the factors grow fast: with PARDISO ~2 s and
+    0.3 GB at 5k nodes, ~50 s and 2.6 GB at 20k; beyond ~40k nodes they no longer fit 16 GB
+    (docs/performance.md).
 ``cg_amg``
     Conjugate gradients on the matrix-free tangent (:mod:`.tangent`: always the exact current
     tangent, never assembled), preconditioned by smoothed-aggregation AMG (:mod:`pyamg`, six
@@ -19,7 +22,8 @@ Backends:
     rebuilt only when the iteration count has grown (:class:`KrylovAMGSolver`). Newton passes an
     adaptive tolerance (inexact Newton). Memory grows linearly with the model.
 ``auto``
-    ``direct`` up to ``auto_direct_max_dofs`` unknowns, ``cg_amg`` above.
+    ``direct`` up to ``auto_direct_max_dofs`` unknowns (30k nodes with PARDISO, 4k with
+    SuperLU), ``cg_amg`` above.
 """
 
 from __future__ import annotations
@@ -107,43 +111,103 @@ def nested_dissection(ijk: np.ndarray, width, leaf: int = 64) -> np.ndarray:
 
 
 class DirectSolver(LinearSolver):
-    """Sparse LU (SuperLU), optionally in a nested-dissection order, with optional factorisation reuse.
+    """Sparse direct factorisation of the assembled tangent, with optional factorisation reuse.
 
-    Ordering: with the nodes' grid indices (``ijk``) the unknowns are permuted into a geometric
-    nested-dissection order (:func:`nested_dissection`) and factorised with symmetric (diagonal)
-    pivoting, which keeps that order; this is several times faster than SuperLU's COLAMD for the
-    wide SCNI stiffness (2.8× on a 2.8k-node slab). Solutions get up to three steps of iterative
-    refinement; if the residual is still above 1e-8 (small pivots of an indefinite tangent), the
-    matrix is refactorised with threshold pivoting in the same order, and as a last resort with
-    COLAMD and partial pivoting (the level then stays for later matrices).
+    Engines (``engine``):
 
-    Reuse (``reuse=True``): the factors of an earlier stiffness K₀ are kept and K x = r is solved
-    by GMRES preconditioned with K₀⁻¹, refactorising when that needs more than
-    ``krylov_maxiter`` iterations. Measured on the nearly incompressible tissues this rarely
-    pays off (the soft shear part of K changes between Newton iterations while K is dominated
-    by bulk and penalty terms), so it is off by default.
+    ``pardiso``
+        MKL PARDISO LDLᵀ (:mod:`.pardiso`; needs the optional ``mkl`` package): supernodal,
+        multi-threaded, METIS ordering; the symbolic analysis is done once per sparsity pattern
+        (fixed for a model) and every tangent costs only the numerical factorisation. Symmetric
+        indefinite pivoting, so tangents with negative eigenvalues are handled.
+    ``superlu``
+        SciPy's SuperLU in a geometric nested-dissection order of the voxel grid (``ijk``;
+        :func:`nested_dissection`) with symmetric (diagonal) pivoting, which keeps that order and
+        is several times faster than COLAMD for the wide SCNI stiffness (2.8× on a 2.8k-node
+        slab). If a solve is still inaccurate after refinement (small pivots of an indefinite
+        tangent), the matrix is refactorised with threshold pivoting in the same order, and as a
+        last resort with COLAMD and partial pivoting (the level then stays for later matrices).
+    ``auto``
+        PARDISO when MKL is installed, otherwise SuperLU.
+
+    Every solve gets up to three steps of iterative refinement against the assembled matrix.
+
+    Reuse (``reuse=True``): the factors of an earlier tangent K₀ are kept and later systems
+    K x = r are solved by conjugate gradients on the matrix-free exact tangent
+    (:meth:`~pixmuscle.mechanics.solve.MechanicalSystem.tangent_operator`, no assembly)
+    preconditioned with K₀⁻¹ (GMRES if K₀ was indefinite), to the tolerance the caller asks
+    (inexact Newton). The tangent is refactorised at the next Newton iteration when a solve
+    needed more than ``krylov_maxiter``/2 iterations, and at once when it fails to converge in
+    ``krylov_maxiter``.
     """
 
     name = "direct"
 
-    def __init__(self, reuse: bool = False, rtol: float = 1e-10, krylov_maxiter: int = 20, ijk=None, width=(4, 4, 4)):
+    def __init__(self, reuse: bool = True, rtol: float = 1e-10, krylov_maxiter: int = 20, ijk=None, width=(4, 4, 4),
+                 engine: str = "auto"):
         super().__init__()
+        from . import pardiso
+
+        if engine == "auto":
+            engine = "pardiso" if pardiso.available() else "superlu"
+        if engine == "pardiso" and not pardiso.available():
+            raise ValueError("solver.direct_engine: pardiso needs MKL (pip install 'pixmuscle[fast]'); "
+                             "use direct_engine: superlu or auto")
+        if engine not in ("pardiso", "superlu"):
+            raise ValueError(f"unknown direct engine {engine!r}: expected auto, pardiso or superlu")
+        self.engine = engine
         self.reuse = reuse
         self.rtol = rtol
         self.krylov_maxiter = krylov_maxiter
         self.perm = None
-        if ijk is not None:
+        if ijk is not None and engine == "superlu":
             order = nested_dissection(ijk, width)
             self.perm = (3 * order[:, None] + np.arange(3)).ravel()
-        # pivoting level: 0 ND order, diagonal pivots; 1 ND order, threshold pivoting; 2 COLAMD, partial pivoting
+        # SuperLU pivoting level: 0 ND order, diagonal pivots; 1 ND order, threshold pivoting; 2 COLAMD, partial pivoting
         self._level = 0 if self.perm is not None else 2
         self._lu = None
+        self._pattern = None
+        self._ldlt = None
         self._K = None
+        self._op = None
+        self._system = self._state = None
+        self._definite = False
         self._fresh = False
-        self.info.update(factorizations=0, krylov_iterations=0)
+        self._stale = False
+        self.info.update(factorizations=0, krylov_iterations=0, engine=engine, analysis_s=0.0)
 
+    # -- factorisation -------------------------------------------------------------------
     def _refactor(self):
         t0 = time.perf_counter()
+        if self.engine == "pardiso":
+            self._refactor_pardiso()
+        else:
+            self._refactor_superlu()
+        self._fresh = True
+        self._stale = False
+        self.info["factorizations"] += 1
+        self.info["setup_s"] += time.perf_counter() - t0
+
+    def _refactor_pardiso(self):
+        from .pardiso import PardisoError, PardisoLDLT, SymmetricPattern
+
+        K = self._K if sp.isspmatrix_bsr(self._K) and self._K.blocksize == (3, 3) else sp.bsr_matrix(self._K, blocksize=(3, 3))
+        if self._pattern is None or not self._pattern.matches(K):
+            if self._ldlt is not None:
+                self._ldlt.free()
+            self._pattern = SymmetricPattern(K)
+            self._ldlt = PardisoLDLT(self._pattern)
+            self.info["analysis_s"] += self._ldlt.info["analysis_s"]
+        try:
+            self._ldlt.factorize(self._pattern.values(K))
+        except PardisoError as exc:
+            raise SolverError(f"direct solver (PARDISO): {exc}; check the boundary conditions") from None
+        pos, neg = self._ldlt.info["inertia"]
+        self._definite = neg == 0
+        self.info.update(factor_nnz=self._ldlt.info["factor_nnz"], factor_gflop=self._ldlt.info["factor_gflop"],
+                         negative_pivots=neg)
+
+    def _refactor_superlu(self):
         K = sp.csr_matrix(self._K)
         try:
             if self._level >= 2:
@@ -157,13 +221,13 @@ class DirectSolver(LinearSolver):
         except RuntimeError as exc:  # exactly singular
             if self._level < 2:
                 self._level += 1
-                return self._refactor()
+                return self._refactor_superlu()
             raise SolverError(f"direct solver: stiffness matrix is singular ({exc}); check the boundary conditions") from None
-        self._fresh = True
-        self.info["factorizations"] += 1
-        self.info["setup_s"] += time.perf_counter() - t0
+        self._definite = False  # SuperLU gives no inertia: Krylov reuse uses GMRES
 
-    def _lu_solve(self, r):
+    def _factor_solve(self, r):
+        if self.engine == "pardiso":
+            return self._ldlt.solve(r)
         if self._p is None:
             return self._lu.solve(r)
         x = np.empty_like(r)
@@ -171,10 +235,10 @@ class DirectSolver(LinearSolver):
         return x
 
     def _accurate_solve(self, r):
-        """LU solve with up to 3 steps of iterative refinement; escalate the pivoting if still inaccurate."""
+        """Factor solve with up to 3 steps of iterative refinement; escalate (SuperLU pivoting, or GMRES) if inaccurate."""
         rn = np.linalg.norm(r)
         while True:
-            x = self._lu_solve(r)
+            x = self._factor_solve(r)
             self.info["iterations"] = 1
             for _ in range(3):
                 if not np.all(np.isfinite(x)):
@@ -182,20 +246,57 @@ class DirectSolver(LinearSolver):
                 res = r - self._K @ x
                 if np.linalg.norm(res) <= 1e-10 * rn:
                     break
-                x = x + self._lu_solve(res)
+                x = x + self._factor_solve(res)
                 self.info["iterations"] += 1
             ok = np.all(np.isfinite(x)) and np.linalg.norm(r - self._K @ x) <= 1e-8 * rn
-            if ok or self._level >= 2:
+            if ok:
+                return x
+            if self.engine == "pardiso":  # perturbed pivots of a nearly singular tangent: Krylov on top
+                return self._krylov(self._K, r, 1e-10, x0=x if np.all(np.isfinite(x)) else None, gmres=True)[0]
+            if self._level >= 2:
                 return x
             self._level += 1
             _LOG.debug("LU was inaccurate (small pivots of an indefinite tangent); refactorising with pivoting level %d",
                        self._level)
             self._refactor()
 
-    def factorize(self, K):
-        self._K = K
+    def _krylov(self, A, r, rtol, x0=None, gmres=False):
+        """Solve A x = r preconditioned by the kept factors; returns (x, iterations, converged)."""
+        M = spla.LinearOperator(A.shape, matvec=lambda v: self._factor_solve(np.asarray(v, float).ravel()))
+        if not gmres:
+            x, its, status = pcg(A, r, M, rtol, self.krylov_maxiter, x0=x0)
+            return x, its, status == "converged"
+        count = [0]
+
+        def cb(_):
+            count[0] += 1
+
+        x, flag = spla.gmres(A, r, x0=x0, rtol=rtol, atol=0.0, restart=self.krylov_maxiter, maxiter=1, M=M,
+                             callback=cb, callback_type="pr_norm")
+        return x, count[0], flag == 0 and bool(np.all(np.isfinite(x)))
+
+    # -- interface -----------------------------------------------------------------------
+    def prepare(self, system, state):
+        """Factorise the tangent of ``state``, or (reuse) keep the factors and take the matrix-free tangent."""
         self.info["setup_s"] = 0.0
-        if self._lu is None or not self.reuse:
+        if self.reuse and self._factor_ready() and not self._stale:
+            self._system, self._state = system, state
+            self._K = None
+            self._op = system.tangent_operator(state)
+            self._fresh = False
+            return
+        self._system = self._state = None
+        self.factorize(system.stiffness(state))
+
+    def _factor_ready(self):
+        return self._ldlt is not None if self.engine == "pardiso" else self._lu is not None
+
+    def factorize(self, K):
+        """Take the assembled tangent ``K``; factorise it unless ``reuse`` keeps earlier factors."""
+        self._K = K
+        self._op = K
+        self.info["setup_s"] = 0.0
+        if not self._factor_ready() or not self.reuse or self._stale:
             self._refactor()
         else:
             self._fresh = False
@@ -206,19 +307,19 @@ class DirectSolver(LinearSolver):
         r = np.asarray(r, float)
         x = None
         if not self._fresh:
-            M = spla.LinearOperator(self._K.shape, matvec=lambda v: self._lu_solve(np.asarray(v, float).ravel()))
-            count = [0]
-
-            def cb(_):
-                count[0] += 1
-
-            x, flag = spla.gmres(self._K, r, rtol=self.rtol, atol=0.0, restart=self.krylov_maxiter, maxiter=1, M=M,
-                                 callback=cb, callback_type="pr_norm")
-            self.info["iterations"] = count[0]
-            self.info["krylov_iterations"] += count[0]
-            if flag != 0 or not np.all(np.isfinite(x)):
+            target = self.rtol if rtol is None else max(float(rtol), 1e-14)
+            x, its, ok = self._krylov(self._op, r, target, gmres=not self._definite)
+            self.info["iterations"] = its
+            self.info["krylov_iterations"] += its
+            if not ok:
                 x = None
+                if self._K is None:  # matrix-free reuse: assemble the current tangent now
+                    t1 = time.perf_counter()
+                    self._K = self._system.stiffness(self._state)
+                    self.info["setup_s"] += time.perf_counter() - t1
                 self._refactor()
+            elif its > self.krylov_maxiter // 2:
+                self._stale = True  # refactorise at the next Newton iteration
         if x is None:
             x = self._accurate_solve(r)
         self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
@@ -407,18 +508,29 @@ class KrylovAMGSolver(LinearSolver):
         return x
 
 
-def make_solver(backend: str, X: np.ndarray, *, auto_direct_max_dofs: int = 12000, rtol: float = 1e-10,
-                maxiter: int = 2000, reuse: bool = False, ijk=None, width=(4, 4, 4)) -> LinearSolver:
+AUTO_DIRECT_MAX_DOFS = {"pardiso": 90_000, "superlu": 12_000}
+
+
+def make_solver(backend: str, X: np.ndarray, *, auto_direct_max_dofs: int | None = None, rtol: float = 1e-10,
+                maxiter: int = 2000, reuse: bool = True, ijk=None, width=(4, 4, 4),
+                direct_engine: str = "auto") -> LinearSolver:
     """Create a backend by name (``auto``, ``direct``, ``cg_amg``) for the nodes ``X`` (N, 3).
 
     ``ijk`` (grid indices of the nodes) enables the nested-dissection ordering of the direct solver
     and is required by ``cg_amg``; ``width`` is the separator thickness per axis (cells).
+    ``auto`` takes ``direct`` up to ``auto_direct_max_dofs`` unknowns (default
+    :data:`AUTO_DIRECT_MAX_DOFS` of the direct engine: beyond, the factors outgrow the memory).
     """
+    from . import pardiso
+
     ndof = 3 * np.asarray(X).shape[0]
+    if auto_direct_max_dofs is None:
+        engine = direct_engine if direct_engine != "auto" else ("pardiso" if pardiso.available() else "superlu")
+        auto_direct_max_dofs = AUTO_DIRECT_MAX_DOFS.get(engine, 12_000)
     if backend == "auto":
         backend = "direct" if ndof <= auto_direct_max_dofs else "cg_amg"
     if backend == "direct":
-        return DirectSolver(reuse=reuse, rtol=rtol, ijk=ijk, width=width)
+        return DirectSolver(reuse=reuse, rtol=rtol, ijk=ijk, width=width, engine=direct_engine)
     if backend == "cg_amg":
         if ijk is None:
             raise ValueError("cg_amg needs the voxel indices ijk of the nodes")

@@ -366,8 +366,11 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None) -> Result
     psi_nodes = _psi_nodes(model, cfg, system.scni.support)
     linsolver = make_solver(cfg.solver.backend, model.X, auto_direct_max_dofs=cfg.solver.auto_direct_max_dofs,
                             rtol=cfg.solver.rtol, maxiter=cfg.solver.maxiter, reuse=cfg.solver.reuse_factorization,
-                            ijk=model.ijk, width=2 * np.floor(np.asarray(cfg.support.a_over_h) + 0.5).astype(int))
+                            ijk=model.ijk, width=2 * np.floor(np.asarray(cfg.support.a_over_h) + 0.5).astype(int),
+                            direct_engine=cfg.solver.direct_engine)
     info["linear_solver"] = linsolver.name
+    if "engine" in linsolver.info:
+        info["linear_engine"] = linsolver.info["engine"]
     steps: list = []
     lin_time = {"setup_s": 0.0, "solve_s": 0.0, "iterations": []}
 
@@ -415,6 +418,8 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None) -> Result
                 linear_solve_s=lin_time["solve_s"], linear_iterations=lin_time["iterations"],
                 factorizations=int(linsolver.info.get("factorizations", 0)),
                 preconditioner_builds=int(linsolver.info.get("preconditioner_builds", 0)),
+                krylov_iterations=int(linsolver.info.get("krylov_iterations", 0)),
+                factor_nnz=int(linsolver.info.get("factor_nnz", 0)),
                 pattern_s=system.timings.get("pattern_s", 0.0),
                 assembly_s=system.timings["assembly_s"], n_assembly=system.timings["n_assembly"],
                 material_s=system.timings["material_s"], n_evaluate=system.timings["n_evaluate"])

@@ -1,0 +1,214 @@
+"""Sparse symmetric LDLᵀ factorisation with Intel MKL PARDISO (optional dependency ``mkl``).
+
+PARDISO is a supernodal, multi-threaded direct solver with METIS ordering. Compared with
+SciPy's SuperLU it factorises the SCNI tangent of the leg 8× faster at 5k nodes and makes 20k
+nodes possible at all (docs/performance.md). It is reached through ``ctypes`` in MKL's single
+dynamic library ``libmkl_rt``, installed by the PyPI package ``mkl`` (``pip install
+pixmuscle[fast]``); nothing is compiled. The binding is ours and small because the phases must
+be separated: the symbolic analysis (ordering, elimination tree) depends only on the sparsity
+pattern, which is fixed for a model, and is done once; every new tangent then costs only the
+numerical factorisation.
+
+Matrix type −2 (real symmetric indefinite, Bunch–Kaufman pivoting within supernodes and
+perturbation of tiny pivots by 1e-8·‖A‖): a finite-strain tangent with active fibre stress may
+have negative eigenvalues; the inertia (numbers of positive and negative pivots) is reported.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import glob
+import os
+import sys
+
+import numpy as np
+import scipy.sparse as sp
+
+_LIB = None
+
+
+class PardisoUnavailable(ImportError):
+    """MKL's runtime library (``libmkl_rt``) was not found."""
+
+
+def _load():
+    global _LIB
+    if _LIB is not None:
+        return _LIB
+    names = [os.environ.get("PIXMUSCLE_MKL_RT", "")]
+    names += sorted(glob.glob(os.path.join(sys.prefix, "lib", "libmkl_rt.so*")), key=len)
+    names += ["libmkl_rt.so.2", "libmkl_rt.so.3", "libmkl_rt.so", "mkl_rt.2.dll", "libmkl_rt.2.dylib"]
+    for name in names:
+        if not name:
+            continue
+        try:
+            lib = ctypes.CDLL(name)
+        except OSError:
+            continue
+        f = lib.pardiso
+        p_i32 = ctypes.POINTER(ctypes.c_int32)
+        f.argtypes = [ctypes.POINTER(ctypes.c_int64), p_i32, p_i32, p_i32, p_i32, p_i32, ctypes.c_void_p,
+                      p_i32, p_i32, p_i32, p_i32, p_i32, p_i32, ctypes.c_void_p, ctypes.c_void_p, p_i32]
+        f.restype = None
+        _LIB = lib
+        return lib
+    raise PardisoUnavailable("MKL PARDISO is not installed (pip install 'pixmuscle[fast]' or pip install mkl)")
+
+
+def available() -> bool:
+    """True when MKL's runtime library can be loaded."""
+    try:
+        _load()
+    except PardisoUnavailable:
+        return False
+    return True
+
+
+_ERRORS = {-1: "input inconsistent", -2: "not enough memory", -3: "reordering problem",
+           -4: "zero pivot, numerical factorisation or iterative refinement problem", -5: "unclassified internal error",
+           -6: "reordering failed", -7: "diagonal matrix is singular", -8: "32-bit integer overflow",
+           -9: "not enough memory for out-of-core", -10: "error opening out-of-core files", -11: "read/write error"}
+
+
+class PardisoError(RuntimeError):
+    """PARDISO returned a non-zero error code."""
+
+
+class SymmetricPattern:
+    """Fixed map from a BSR matrix with 3×3 blocks to the upper triangle in CSR, 0-based.
+
+    Built once per sparsity pattern; :meth:`values` gathers the upper-triangle entries of a
+    matrix with the same pattern in CSR order without any sorting (one ``take``).
+
+    Parameters
+    ----------
+    K : scipy.sparse.bsr_matrix, (n, n) with (3, 3) blocks
+        Symmetric pattern (both triangles present), sorted block indices.
+    """
+
+    def __init__(self, K: sp.bsr_matrix):
+        K = sp.bsr_matrix(K)
+        K.sort_indices()
+        R, C = K.blocksize
+        nb = K.indptr.size - 1
+        brow = np.repeat(np.arange(nb, dtype=np.int64), np.diff(K.indptr))
+        bcol = K.indices.astype(np.int64)
+        ii, jj = np.meshgrid(np.arange(R), np.arange(C), indexing="ij")
+        row = (brow[:, None] * R + ii.ravel()[None, :]).ravel()
+        col = (bcol[:, None] * C + jj.ravel()[None, :]).ravel()
+        upper = np.flatnonzero(row <= col)
+        # entries are in (block, i, j) order with sorted block columns in each block row, so a
+        # stable sort by scalar row alone leaves every row's columns ascending
+        order = np.argsort(row[upper], kind="stable")
+        self.take = upper[order]
+        self.n = K.shape[0]
+        r, c = row[self.take], col[self.take]
+        self.indptr = np.zeros(self.n + 1, np.int32)
+        np.cumsum(np.bincount(r, minlength=self.n), out=self.indptr[1:])
+        self.indices = c.astype(np.int32)
+        self.blocks = (K.indptr.copy(), K.indices.copy())
+
+    def matches(self, K: sp.bsr_matrix) -> bool:
+        """True if ``K`` has exactly this block pattern."""
+        ip, ix = self.blocks
+        return (K.shape[0] == self.n and K.indptr.shape == ip.shape and K.indices.shape == ix.shape
+                and np.array_equal(K.indptr, ip) and np.array_equal(K.indices, ix))
+
+    def values(self, K: sp.bsr_matrix) -> np.ndarray:
+        """Upper-triangle values of ``K`` in this pattern's CSR order, (nnz,) float64."""
+        return np.ascontiguousarray(K.data.reshape(-1)[self.take], dtype=np.float64)
+
+
+class PardisoLDLT:
+    """LDLᵀ factorisation of symmetric matrices sharing one sparsity pattern.
+
+    Parameters
+    ----------
+    pattern : SymmetricPattern
+        Upper-triangle CSR structure; the symbolic analysis (METIS ordering) is done here, once.
+
+    Attributes
+    ----------
+    info : dict
+        ``analysis_s``, ``factor_nnz`` (entries of L), ``factor_gflop``, ``inertia`` (positive,
+        negative pivots of the last factorisation), ``perturbed_pivots``.
+    """
+
+    MTYPE = -2  # real symmetric indefinite
+
+    def __init__(self, pattern: SymmetricPattern):
+        import time
+
+        self._f = _load().pardiso
+        self.pattern = pattern
+        self.pt = np.zeros(64, np.int64)
+        self.iparm = np.zeros(64, np.int32)
+        ip = self.iparm
+        ip[0] = 1     # iparm given here, not defaults
+        ip[1] = 2     # METIS nested dissection
+        ip[7] = 0     # iterative refinement: automatic (2 steps when pivots were perturbed)
+        ip[9] = 8     # perturb pivots below 1e-8 ‖A‖
+        ip[10] = 0    # no scaling (needs weighted matching, not for nearly definite matrices)
+        ip[12] = 0
+        ip[17] = -1   # report non-zeros of the factor
+        ip[18] = -1   # report Gflop of the factorisation
+        ip[20] = 1    # Bunch–Kaufman 1×1 and 2×2 pivots
+        ip[34] = 1    # zero-based indices
+        self._data = np.zeros(pattern.indices.shape[0])
+        self._factored = False
+        self.info = {}
+        t0 = time.perf_counter()
+        self._call(11, self._data, np.zeros(pattern.n), np.zeros(pattern.n))
+        self.info.update(analysis_s=time.perf_counter() - t0, factor_nnz=int(self.iparm[17]))
+
+    def _call(self, phase, a, b, x, nrhs=1):
+        err = ctypes.c_int32(0)
+        i32 = ctypes.c_int32
+        p_i32 = ctypes.POINTER(ctypes.c_int32)
+        self._f(self.pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)), ctypes.byref(i32(1)), ctypes.byref(i32(1)),
+                ctypes.byref(i32(self.MTYPE)), ctypes.byref(i32(phase)), ctypes.byref(i32(self.pattern.n)),
+                a.ctypes.data, self.pattern.indptr.ctypes.data_as(p_i32), self.pattern.indices.ctypes.data_as(p_i32),
+                None, ctypes.byref(i32(nrhs)), self.iparm.ctypes.data_as(p_i32), ctypes.byref(i32(0)),
+                b.ctypes.data, x.ctypes.data, ctypes.byref(err))
+        if err.value != 0:
+            raise PardisoError(f"PARDISO phase {phase}: error {err.value} ({_ERRORS.get(err.value, 'unknown')})")
+
+    def factorize(self, values: np.ndarray) -> None:
+        """Numerical factorisation of the matrix with upper-triangle ``values`` (pattern order)."""
+        self._data = np.ascontiguousarray(values, dtype=np.float64)
+        dummy = np.zeros(self.pattern.n)
+        self._factored = False
+        self._call(22, self._data, dummy, dummy)
+        self._factored = True
+        self.info.update(factor_nnz=int(self.iparm[17]), factor_gflop=float(self.iparm[18]) / 1e3,
+                         inertia=(int(self.iparm[21]), int(self.iparm[22])), perturbed_pivots=int(self.iparm[13]))
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """x = A⁻¹ b for the last factorised matrix; ``b`` (n,) or (n, k)."""
+        if not self._factored:
+            raise PardisoError("PARDISO: solve before a successful factorisation")
+        b = np.asarray(b, dtype=np.float64)
+        bf = np.asfortranarray(b)
+        x = np.zeros_like(bf)
+        self._call(33, self._data, bf, x, nrhs=1 if b.ndim == 1 else b.shape[1])
+        return np.ascontiguousarray(x)
+
+    def __matmul__(self, b):
+        return self.solve(b)
+
+    def free(self) -> None:
+        """Release PARDISO's internal memory (factors and analysis)."""
+        if self.pt.any():
+            dummy = np.zeros(1)
+            try:
+                self._call(-1, self._data, dummy, dummy)
+            except PardisoError:
+                pass
+            self.pt[:] = 0
+            self._factored = False
+
+    def __del__(self):
+        try:
+            self.free()
+        except Exception:  # interpreter shutdown
+            pass
