@@ -137,13 +137,13 @@ class DirectSolver(LinearSolver):
     (:meth:`~pixmuscle.mechanics.solve.MechanicalSystem.tangent_operator`, no assembly)
     preconditioned with K₀⁻¹ (GMRES if K₀ was indefinite), to the tolerance the caller asks
     (inexact Newton). The tangent is refactorised at the next Newton iteration when a solve
-    needed more than ``krylov_maxiter``/2 iterations, and at once when it fails to converge in
-    ``krylov_maxiter``.
+    needed more than ``krylov_maxiter``/2 iterations or more than a quarter of the time of the
+    last assembly + factorisation, and at once when it fails to converge in ``krylov_maxiter``.
     """
 
     name = "direct"
 
-    def __init__(self, reuse: bool = True, rtol: float = 1e-10, krylov_maxiter: int = 20, ijk=None, width=(4, 4, 4),
+    def __init__(self, reuse: bool = True, rtol: float = 1e-10, krylov_maxiter: int = 40, ijk=None, width=(4, 4, 4),
                  engine: str = "auto"):
         super().__init__()
         from . import pardiso
@@ -174,6 +174,8 @@ class DirectSolver(LinearSolver):
         self._definite = False
         self._fresh = False
         self._stale = False
+        self._factor_cost = 0.0  # seconds of the last assembly + factorisation
+        self._assembly_s = 0.0
         self.info.update(factorizations=0, krylov_iterations=0, engine=engine, analysis_s=0.0)
 
     # -- factorisation -------------------------------------------------------------------
@@ -185,6 +187,7 @@ class DirectSolver(LinearSolver):
             self._refactor_superlu()
         self._fresh = True
         self._stale = False
+        self._factor_cost = self._assembly_s + time.perf_counter() - t0
         self.info["factorizations"] += 1
         self.info["setup_s"] += time.perf_counter() - t0
 
@@ -286,13 +289,17 @@ class DirectSolver(LinearSolver):
             self._fresh = False
             return
         self._system = self._state = None
-        self.factorize(system.stiffness(state))
+        t0 = time.perf_counter()
+        K = system.stiffness(state)
+        self.factorize(K, assembly_s=time.perf_counter() - t0)
 
     def _factor_ready(self):
         return self._ldlt is not None if self.engine == "pardiso" else self._lu is not None
 
-    def factorize(self, K):
-        """Take the assembled tangent ``K``; factorise it unless ``reuse`` keeps earlier factors."""
+    def factorize(self, K, assembly_s: float = 0.0):
+        """Take the assembled tangent ``K`` (assembled in ``assembly_s`` seconds); factorise it unless
+        ``reuse`` keeps earlier factors."""
+        self._assembly_s = assembly_s
         self._K = K
         self._op = K
         self.info["setup_s"] = 0.0
@@ -313,12 +320,14 @@ class DirectSolver(LinearSolver):
             self.info["krylov_iterations"] += its
             if not ok:
                 x = None
+                self._assembly_s = 0.0
                 if self._K is None:  # matrix-free reuse: assemble the current tangent now
                     t1 = time.perf_counter()
                     self._K = self._system.stiffness(self._state)
-                    self.info["setup_s"] += time.perf_counter() - t1
+                    self._assembly_s = time.perf_counter() - t1
+                    self.info["setup_s"] += self._assembly_s
                 self._refactor()
-            elif its > self.krylov_maxiter // 2:
+            elif its > self.krylov_maxiter // 2 or time.perf_counter() - t0 > 0.25 * self._factor_cost:
                 self._stale = True  # refactorise at the next Newton iteration
         if x is None:
             x = self._accurate_solve(r)

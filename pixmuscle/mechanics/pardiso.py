@@ -89,23 +89,30 @@ class SymmetricPattern:
     def __init__(self, K: sp.bsr_matrix):
         K = sp.bsr_matrix(K)
         K.sort_indices()
-        R, C = K.blocksize
+        if K.blocksize != (3, 3):
+            raise ValueError(f"SymmetricPattern needs 3×3 blocks, got {K.blocksize}")
+        self.n = K.shape[0]
         nb = K.indptr.size - 1
-        brow = np.repeat(np.arange(nb, dtype=np.int64), np.diff(K.indptr))
-        bcol = K.indices.astype(np.int64)
-        ii, jj = np.meshgrid(np.arange(R), np.arange(C), indexing="ij")
-        row = (brow[:, None] * R + ii.ravel()[None, :]).ravel()
-        col = (bcol[:, None] * C + jj.ravel()[None, :]).ravel()
-        upper = np.flatnonzero(row <= col)
+        itype = np.int32 if self.n < np.iinfo(np.int32).max else np.int64
+        brow = np.repeat(np.arange(nb, dtype=itype), np.diff(K.indptr))
+        bcol = K.indices.astype(itype, copy=False)
+        ub = np.flatnonzero(bcol >= brow)  # blocks on or above the diagonal
+        ii, jj = (a.ravel() for a in np.meshgrid(np.arange(3), np.arange(3), indexing="ij"))
+        keep = (bcol[ub] > brow[ub])[:, None] | (jj >= ii)[None, :]  # whole off-diagonal blocks, upper half of diagonal ones
+        take = (ub[:, None].astype(np.int64) * 9 + np.arange(9))[keep]
+        row = (brow[ub][:, None] * 3 + ii[None, :].astype(itype))[keep]
+        del keep, brow, ub
         # entries are in (block, i, j) order with sorted block columns in each block row, so a
         # stable sort by scalar row alone leaves every row's columns ascending
-        order = np.argsort(row[upper], kind="stable")
-        self.take = upper[order]
-        self.n = K.shape[0]
-        r, c = row[self.take], col[self.take]
+        order = np.argsort(row, kind="stable")
+        self.take = take[order]
+        del take
+        if self.take.size >= np.iinfo(np.int32).max:
+            raise ValueError(f"{self.take.size} non-zeros in the upper triangle: too many for 32-bit PARDISO indices")
         self.indptr = np.zeros(self.n + 1, np.int32)
-        np.cumsum(np.bincount(r, minlength=self.n), out=self.indptr[1:])
-        self.indices = c.astype(np.int32)
+        np.cumsum(np.bincount(row, minlength=self.n), out=self.indptr[1:])
+        del row, order
+        self.indices = (bcol[self.take // 9] * 3 + (self.take % 3).astype(itype)).astype(np.int32)
         self.blocks = (K.indptr.copy(), K.indices.copy())
 
     def matches(self, K: sp.bsr_matrix) -> bool:
