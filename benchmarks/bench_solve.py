@@ -44,7 +44,7 @@ import numpy as np
 OUT = pathlib.Path(__file__).parent / "results"
 SPACING = (0.15625, 0.15625, 0.5)
 SIZES = {"2k": (0.40, 5), "5k": (0.50, 8), "10k": (0.62, 11), "20k": (0.72, 15), "75k": (1.04, 25)}
-DEFAULT_CASES = ["5k:direct", "5k:direct_reuse", "5k:cg_amg", "10k:direct_reuse", "20k:direct_reuse", "20k:cg_amg"]
+DEFAULT_CASES = ["5k:direct", "5k:direct_reuse", "5k:cg_amg", "10k:direct_reuse", "10k:cg_amg", "20k:direct_reuse"]
 # backend tokens of --cases → solve.solver settings
 BACKENDS = {
     "direct": {"backend": "direct"},                                         # PARDISO if MKL is installed
@@ -247,18 +247,23 @@ def write_tables(cases, argv):
     lines = ["# bench_solve: isometric activation sweep of the SYNTHETIC leg (paper Example 2 set-up)", "",
              f"{meta['date_utc']}, {meta['platform']}, Python {meta['python']}, {meta['cpus']} CPUs. "
              f"Command: `{meta['command']}`", "",
-             "| nodes | backend | penalty factor | nnz/row (K / precond.) | build (s) | assembly / Newton it (s) | "
-             "linear / Newton it (s) | CG its / Newton it | Newton its / step | sweep (s) | peak RSS (GB) | F_z(z_max) at α=0.95 (N) | status |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for c in cases:
+             "| nodes | backend | nnz/row (K / precond.) | build (s) | assembly / Newton it (s) | "
+             "linear / Newton it (s) | factorisations (factor nnz/row) | CG its / Newton it | Newton its / step | cutbacks | "
+             "sweep (s) | peak RSS (GB) | F_z(z_max) at α=0.95 (N) | status |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for c in sorted(cases, key=lambda c: (c.get("backend", ""), c.get("nodes", 0))):
         if "error" in c:
-            lines.append(f"| {c.get('size')} | {c.get('backend')} | | | | | | | | | {c.get('peak_rss_GB', '')} | | {c['error'][:60]} |")
+            lines.append(f"| {c.get('size')} | {c.get('backend')} | | | | | | | | | | {c.get('peak_rss_GB', '')} | | {c['error'][:60]} |")
             continue
-        nnz = f"{c['nnz_per_row'] or '—'} / {c['preconditioner_nnz_per_row'] and round(c['preconditioner_nnz_per_row'])}"
-        lines.append(f"| {c['nodes']} | {c['backend']} | {c['penalty_factor']:g} | {nnz} | {c['build_s']} | "
-                     f"{c['assembly_s_per_iteration']} | {c['linear_s_per_iteration']} | {c['cg_iterations_per_newton'] or '—'} | "
-                     f"{c['newton_iterations_per_step'][1:]} | {c['sweep_s']} | {c['peak_rss_GB']} | "
-                     f"{c['force_z_max_N'][-1]:.2f} | {c['status'][:30]} |")
+        pre = c["preconditioner_nnz_per_row"]
+        nnz = f"{c['nnz_per_row'] or '—'} / {round(pre) if pre else '—'}"
+        fac = f"{c['factorizations']} ({c['factor_nnz_per_row']})" if c.get("factorizations") else "—"
+        lines.append(f"| {c['nodes']} | {c['backend']} | {nnz} | {c['build_s']} | "
+                     f"{c['assembly_s_per_iteration']} | {c['linear_s_per_iteration']} | {fac} | {c['cg_iterations_per_newton'] or '—'} | "
+                     f"{c['newton_iterations_per_step'][1:]} | {c['cutbacks']} | {c['sweep_s']} | {c['peak_rss_GB']} | "
+                     f"{c['force_z_max_N'][-1]:.6f} | {c['status'][:30]} |")
+    lines += ["", "Penalty factor: " + ", ".join(sorted({f"{c['penalty_factor']:g}" for c in cases if "error" not in c}))
+              + "; commands per case in bench_solve.json."]
     if exps:
         lines += ["", "Growth exponents (slope of log quantity against log nodes):", "",
                   "| backend | " + " | ".join(EXPONENT_KEYS) + " |", "|---|" + "---|" * len(EXPONENT_KEYS)]
@@ -283,20 +288,14 @@ def main(argv=None):
                    help="PARDISO's symbolic analysis of the full tangent at SIZE (predicted factor size and "
                         "flops); writes results/bench_solve_probe_direct_SIZE.json")
     args = p.parse_args(argv)
-    if args.probe_direct:
-        res = probe_direct(args.probe_direct, args.penalty)
-        res["command"] = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
-        OUT.mkdir(parents=True, exist_ok=True)
-        (OUT / f"bench_solve_probe_direct_{args.probe_direct}.json").write_text(json.dumps(res, indent=1))
-        print(json.dumps(res, indent=1))
-        return 0
-    if args.probe:
-        res = probe(args.probe, args.penalty)
-        res["command"] = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
-        OUT.mkdir(parents=True, exist_ok=True)
-        (OUT / f"bench_solve_probe_{args.probe}.json").write_text(json.dumps(res, indent=1))
-        print(json.dumps(res, indent=1))
-        return 0
+    for size, fn, stem in ((args.probe_direct, probe_direct, "bench_solve_probe_direct"), (args.probe, probe, "bench_solve_probe")):
+        if size:
+            res = fn(size, args.penalty)
+            res["command"] = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
+            OUT.mkdir(parents=True, exist_ok=True)
+            (OUT / f"{stem}_{size}.json").write_text(json.dumps(res, indent=1))
+            print(json.dumps(res, indent=1))
+            return 0
     if args.one:
         size, backend = args.one.split(":")
         print("RESULT " + json.dumps(run_case(size, backend, args.steps, args.alpha, args.penalty)), flush=True)

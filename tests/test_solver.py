@@ -339,3 +339,13 @@ def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
         neg = int(np.sum(ev + shift < 0))
         assert f.info["inertia"] == (n - neg, neg)
         f.free()
+
+
+def test_forcing_term_follows_eisenstat_walker_with_safeguards():
+    """η_k = min(1e-2, max(0.9 (‖r_k‖/‖r_k−1‖)², 0.1 target/‖r_k‖)), η_max at a step's first iteration."""
+    from pixmuscle.mechanics.newton import forcing_term
+
+    assert forcing_term(5.0, None, 1e-8) == 1e-2                       # first iteration of a step
+    assert forcing_term(1e-3, 1.0, 1e-12) == pytest.approx(0.9e-6)      # quadratic phase: (1e-3)² · 0.9
+    assert forcing_term(1e-6, 1e-3, 1e-9) == pytest.approx(0.1 * 1e-9 / 1e-6)  # last iteration: safeguard
+    assert forcing_term(0.5, 0.6, 1e-8) == 1e-2                         # slow convergence: capped
