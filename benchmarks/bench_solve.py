@@ -212,8 +212,8 @@ def probe_direct(size: str, penalty: float | None) -> dict:
     del K
     out["upper_pattern_s"] = round(time.perf_counter() - t, 1)
     f = PardisoLDLT(pat)
-    out.update(analysis_s=round(f.info["analysis_s"], 1), factor_nnz=int(f.iparm[17]),
-               factor_GB=round(8 * int(f.iparm[17]) / 1e9, 2), factor_gflop=float(f.iparm[18]) / 1e3,
+    out.update(analysis_s=round(f.info["analysis_s"], 1), factor_nnz=f.info["factor_nnz"],
+               factor_GB=round(8 * f.info["factor_nnz"] / 1e9, 2), factor_gflop=float(f.iparm[18]) / 1e3,
                peak_rss_GB=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2))
     return out
 

@@ -166,7 +166,11 @@ class PardisoLDLT:
         self.info = {}
         t0 = time.perf_counter()
         self._call(11, self._data, np.zeros(pattern.n), np.zeros(pattern.n))
-        self.info.update(analysis_s=time.perf_counter() - t0, factor_nnz=int(self.iparm[17]))
+        self.info.update(analysis_s=time.perf_counter() - t0, factor_nnz=self._factor_nnz())
+
+    def _factor_nnz(self) -> int:
+        """Entries of the factor (iparm[17], an int32 that wraps above 2³¹: read as unsigned)."""
+        return int(np.int32(self.iparm[17]).view(np.uint32))
 
     def _call(self, phase, a, b, x, nrhs=1):
         err = ctypes.c_int32(0)
@@ -187,7 +191,7 @@ class PardisoLDLT:
         self._factored = False
         self._call(22, self._data, dummy, dummy)
         self._factored = True
-        self.info.update(factor_nnz=int(self.iparm[17]), factor_gflop=float(self.iparm[18]) / 1e3,
+        self.info.update(factor_nnz=self._factor_nnz(), factor_gflop=float(self.iparm[18]) / 1e3,
                          inertia=(int(self.iparm[21]), int(self.iparm[22])), perturbed_pivots=int(self.iparm[13]))
 
     def solve(self, b: np.ndarray) -> np.ndarray:
