@@ -194,7 +194,9 @@ class DirectSolver(LinearSolver):
     def _refactor_pardiso(self):
         from .pardiso import PardisoError, PardisoLDLT, SymmetricPattern
 
-        K = self._K if sp.isspmatrix_bsr(self._K) and self._K.blocksize == (3, 3) else sp.bsr_matrix(self._K, blocksize=(3, 3))
+        K = self._K
+        if K.format != "bsr" or K.blocksize != (3, 3):
+            K = sp.bsr_matrix(K, blocksize=(3, 3))
         if self._pattern is None or not self._pattern.matches(K):
             if self._ldlt is not None:
                 self._ldlt.free()
@@ -205,7 +207,7 @@ class DirectSolver(LinearSolver):
             self._ldlt.factorize(self._pattern.values(K))
         except PardisoError as exc:
             raise SolverError(f"direct solver (PARDISO): {exc}; check the boundary conditions") from None
-        pos, neg = self._ldlt.info["inertia"]
+        neg = self._ldlt.info["inertia"][1]
         self._definite = neg == 0
         self.info.update(factor_nnz=self._ldlt.info["factor_nnz"], factor_gflop=self._ldlt.info["factor_gflop"],
                          negative_pivots=neg)
