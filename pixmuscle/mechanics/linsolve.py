@@ -22,7 +22,7 @@ Backends:
     rebuilt only when the iteration count has grown (:class:`KrylovAMGSolver`). Newton passes an
     adaptive tolerance (inexact Newton). Memory grows linearly with the model.
 ``auto``
-    ``direct`` up to ``auto_direct_max_dofs`` unknowns (30k nodes with PARDISO, 4k with
+    ``direct`` up to ``auto_direct_max_dofs`` unknowns (15k nodes with PARDISO, 4k with
     SuperLU), ``cg_amg`` above.
 """
 
@@ -519,7 +519,9 @@ class KrylovAMGSolver(LinearSolver):
         return x
 
 
-AUTO_DIRECT_MAX_DOFS = {"pardiso": 90_000, "superlu": 12_000}
+# direct up to here: PARDISO + reuse is faster than cg_amg at 11.5k nodes (351 s against 626 s for the
+# benchmark sweep) and slower at 21k (2,244 s against ~1,200 s extrapolated), docs/performance.md
+AUTO_DIRECT_MAX_DOFS = {"pardiso": 45_000, "superlu": 12_000}
 
 
 def make_solver(backend: str, X: np.ndarray, *, auto_direct_max_dofs: int | None = None, rtol: float = 1e-10,
