@@ -76,24 +76,26 @@ def leg_labels(scale: float, n_slices: int, seed: int = 0):
     return code.reshape(nx, ny, n_slices), fib.reshape(nx, ny, n_slices, 3), h
 
 
-def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: float | None) -> dict:
+def leg_case(size: str, penalty: float | None, **solve_keys):
+    """(model, SolveConfig) of the SYNTHETIC leg at ``size`` with the Example 2 boundary conditions
+    (both ends fixed, bone surfaces fixed in-plane); ``solve_keys`` add to the ``solve`` section."""
     from pixmuscle.config import parse_section
     from pixmuscle.mechanics.config import SolveConfig
-    from pixmuscle.mechanics.solve import solve
     from pixmuscle.model.build import model_from_labels
 
     labels, fibers, h = leg_labels(*SIZES[size])
     model = model_from_labels(labels, h, fibers=fibers, fiber_fallback="muscle_mean")
-    sec = {
-        "steps": steps,
-        "activation": {"from": 0.0, "to": alpha_to},
-        "boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]},
-                                {"nodes": "bone_surface", "fix": ["x", "y"]}],
-        "solver": BACKENDS[backend],
-    }
+    sec = {"boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]},
+                                   {"nodes": "bone_surface", "fix": ["x", "y"]}], **solve_keys}
     if penalty is not None:
         sec["penalty"] = {"factor": penalty}
-    cfg = parse_section(SolveConfig, sec, "solve")
+    return model, parse_section(SolveConfig, sec, "solve")
+
+
+def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: float | None) -> dict:
+    from pixmuscle.mechanics.solve import solve
+
+    model, cfg = leg_case(size, penalty, steps=steps, activation={"from": 0.0, "to": alpha_to}, solver=BACKENDS[backend])
     t1 = time.perf_counter()
     res = solve(model, cfg)
     wall = time.perf_counter() - t1
@@ -138,22 +140,13 @@ def probe(size: str, penalty: float | None) -> dict:
     For sizes whose whole sweep does not fit the session; the sweep time is then estimated from
     the measured per-iteration costs (docs/performance.md says how).
     """
-    from pixmuscle.config import parse_section
-    from pixmuscle.mechanics.config import SolveConfig
     from pixmuscle.mechanics.linsolve import make_solver, pcg
     from pixmuscle.mechanics.solve import build_system
-    from pixmuscle.model.build import model_from_labels
 
     out = {"size": size, "probe": True}
     t = time.perf_counter()
-    labels, fibers, h = leg_labels(*SIZES[size])
-    model = model_from_labels(labels, h, fibers=fibers, fiber_fallback="muscle_mean")
+    model, cfg = leg_case(size, penalty)
     out.update(nodes=model.n_nodes, dofs=3 * model.n_nodes, model_s=round(time.perf_counter() - t, 1))
-    sec = {"boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]},
-                                   {"nodes": "bone_surface", "fix": ["x", "y"]}]}
-    if penalty is not None:
-        sec["penalty"] = {"factor": penalty}
-    cfg = parse_section(SolveConfig, sec, "solve")
     t = time.perf_counter()
     system, info = build_system(model, cfg)
     out["build_s"] = round(time.perf_counter() - t, 1)
@@ -188,20 +181,12 @@ def probe(size: str, penalty: float | None) -> dict:
 def probe_direct(size: str, penalty: float | None) -> dict:
     """PARDISO's symbolic analysis of the full tangent at ``size``: predicted factor size and
     flops of one factorisation, without factorising (for sizes where that would not fit)."""
-    from pixmuscle.config import parse_section
-    from pixmuscle.mechanics.config import SolveConfig
     from pixmuscle.mechanics.pardiso import PardisoLDLT, SymmetricPattern
     from pixmuscle.mechanics.solve import build_system
-    from pixmuscle.model.build import model_from_labels
 
     out = {"size": size, "probe": "direct"}
-    labels, fibers, h = leg_labels(*SIZES[size])
-    model = model_from_labels(labels, h, fibers=fibers, fiber_fallback="muscle_mean")
-    sec = {"boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]},
-                                   {"nodes": "bone_surface", "fix": ["x", "y"]}]}
-    if penalty is not None:
-        sec["penalty"] = {"factor": penalty}
-    system, _ = build_system(model, parse_section(SolveConfig, sec, "solve"))
+    model, cfg = leg_case(size, penalty)
+    system, _ = build_system(model, cfg)
     state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.095)
     t = time.perf_counter()
     K = system.stiffness(state)

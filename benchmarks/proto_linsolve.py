@@ -674,6 +674,17 @@ def run_case(args) -> dict:
     out["A9_min_eig"] = float(ev[:, 0].min())
     out["rss_after_setup_gb"] = round(rss_gb(), 3)
     w = args.what
+
+    def amg_preconditioner(Kp):
+        """pyamg SA V-cycle of Kp with this run's aggregation and θ; records levels and complexity."""
+        agg = geometric_aggregates(model.ijk, (3, 3, 1)) if args.agg == "geo" else None
+        with T("amg_setup_s"):
+            ml = amg(Kp, model.X, theta=args.theta, agg=agg)
+        log(f"amg set up: {ml}")
+        out["levels"] = len(ml.levels)
+        out["operator_complexity"] = round(ml.operator_complexity(), 3)
+        return ml.aspreconditioner(cycle="V")
+
     if w == "build":
         with T("spgemm_s"):
             K1 = assemble_spgemm(ops, A9) if args.spgemm else None
@@ -759,13 +770,7 @@ def run_case(args) -> dict:
         del K2
         out["nnz_per_dof_row"] = round(K.nnz / (3 * n), 1)
         log("assembled")
-        agg = geometric_aggregates(model.ijk, (3, 3, 1)) if args.agg == "geo" else None
-        with T("amg_setup_s"):
-            ml = amg(K, model.X, theta=args.theta, agg=agg)
-        log(f"amg set up: {ml}")
-        out["levels"] = len(ml.levels)
-        out["operator_complexity"] = round(ml.operator_complexity(), 3)
-        M = ml.aspreconditioner(cycle="V")
+        M = amg_preconditioner(K)
         with T("solve_s"):
             x, hist, st = pcg(K, b, M, rtol=args.rtol, maxiter=args.maxiter)
         out.update(cg_status=st, iterations=len(hist) - 1, it_1e3=iters_to(hist, 1e-3), it_1e6=iters_to(hist, 1e-6))
@@ -801,13 +806,7 @@ def run_case(args) -> dict:
                     raise SystemExit(f"unknown aux {args.aux}")
             out.update(ainfo)
             log(f"aux built {ainfo}")
-            agg = geometric_aggregates(model.ijk, (3, 3, 1)) if args.agg == "geo" else None
-            with T("amg_setup_s"):
-                ml = amg(Kaux, model.X, theta=args.theta, agg=agg)
-            log(f"amg set up: {ml}")
-            out["levels"] = len(ml.levels)
-            out["operator_complexity"] = round(ml.operator_complexity(), 3)
-            M = ml.aspreconditioner(cycle="V")
+            M = amg_preconditioner(Kaux)
             with T("vcycle_s"):
                 for _ in range(3):
                     M @ b

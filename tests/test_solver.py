@@ -11,6 +11,7 @@ import yaml
 
 from pixmuscle.config import parse_section
 from pixmuscle.errors import InputError, SolverError
+from pixmuscle.mechanics import pardiso
 from pixmuscle.mechanics.config import SolveConfig
 from pixmuscle.mechanics.linsolve import DirectSolver, make_solver, voxel_aggregates
 from pixmuscle.mechanics.results import load_results
@@ -288,8 +289,6 @@ def test_voxel_aggregates_group_boxes():
 def test_cg_amg_sweep_matches_direct_solver():
     """Every backend reproduces the SuperLU forces over an activation sweep: cg_amg, PARDISO
     (when MKL is installed) and PARDISO with factor reuse (CG on the matrix-free tangent)."""
-    from pixmuscle.mechanics import pardiso
-
     model = _mixed_leg_like_model()
     bcs = [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]}]
     variants = {"superlu": {"backend": "direct", "direct_engine": "superlu", "reuse_factorization": False},
@@ -314,8 +313,7 @@ def test_cg_amg_sweep_matches_direct_solver():
     assert out["cg_amg"].info["linear_solver"] == "cg_amg" and out["cg_amg"].info["preconditioner_builds"] >= 1
 
 
-@pytest.mark.skipif(not __import__("pixmuscle.mechanics.pardiso", fromlist=["available"]).available(),
-                    reason="MKL PARDISO not installed")
+@pytest.mark.skipif(not pardiso.available(), reason="MKL PARDISO not installed")
 def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
     """PARDISO's solution equals SciPy's sparse LU solve; its inertia equals numpy's eigenvalue count."""
     from pixmuscle.mechanics.pardiso import PardisoLDLT, SymmetricPattern
