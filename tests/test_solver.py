@@ -313,6 +313,31 @@ def test_cg_amg_sweep_matches_direct_solver():
     assert out["cg_amg"].info["linear_solver"] == "cg_amg" and out["cg_amg"].info["preconditioner_builds"] >= 1
 
 
+def test_cg_amg_rebuilds_when_stale_iterations_cost_a_build():
+    """Ski-rental rule: iterations beyond the post-build rate are charged in seconds; the hierarchy
+    is rebuilt once they exceed the build time, and not before."""
+    from pixmuscle.mechanics.linsolve import KrylovAMGSolver
+
+    model = _mixed_leg_like_model()
+    system = _system(model)
+    state = system.evaluate(np.zeros((model.n_nodes, 3)), 1.0, 0.5)
+    s = KrylovAMGSolver(model.X, model.ijk)
+    s.prepare(system, state)
+    r = state.r.ravel()
+    s.solve(r, rtol=1e-8)
+    assert s.info["preconditioner_builds"] == 1 and s._rate0 >= 1.0
+    s._rate0 = 0.1  # pretend the hierarchy was much better right after its build: every solve now costs extra
+    s._build_s = 1e9  # ... but a build would cost far more than that
+    s.solve(r, rtol=1e-8)
+    s.prepare(system, state)
+    assert s.info["preconditioner_builds"] == 1
+    s._rate0, s._build_s = 0.1, 0.0  # a free build: the first extra iteration pays for it
+    x = s.solve(r, rtol=1e-8)
+    s.prepare(system, state)
+    assert s.info["preconditioner_builds"] == 2
+    assert np.linalg.norm(system.tangent_operator(state) @ x - r) <= 1e-8 * np.linalg.norm(r) * 1.01
+
+
 @pytest.mark.skipif(not pardiso.available(), reason="MKL PARDISO not installed")
 def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
     """PARDISO's solution equals SciPy's sparse LU solve; its inertia equals numpy's eigenvalue count."""
@@ -347,3 +372,5 @@ def test_forcing_term_follows_eisenstat_walker_with_safeguards():
     assert forcing_term(1e-3, 1.0, 1e-12) == pytest.approx(0.9e-6)      # quadratic phase: (1e-3)² · 0.9
     assert forcing_term(1e-6, 1e-3, 1e-9) == pytest.approx(0.1 * 1e-9 / 1e-6)  # last iteration: safeguard
     assert forcing_term(0.5, 0.6, 1e-8) == 1e-2                         # slow convergence: capped
+    assert forcing_term(0.5, 0.6, 1e-8, eta_max=0.1) == pytest.approx(0.9 * (0.5 / 0.6) ** 2 if 0.9 * (0.5 / 0.6) ** 2 < 0.1 else 0.1)
+    assert forcing_term(5.0, None, 1e-8, eta_max=0.1) == 0.1

@@ -73,10 +73,10 @@ def _norm(r) -> float:
 ETA_MAX = 1e-2
 
 
-def forcing_term(rn: float, rn_prev: float | None, target: float) -> float:
+def forcing_term(rn: float, rn_prev: float | None, target: float, eta_max: float = ETA_MAX) -> float:
     """Relative accuracy η of the linear solve of one Newton iteration (inexact Newton).
 
-    Eisenstat & Walker (1996), choice 2 with γ = 0.9, exponent 2, capped at η_max = 1e-2: while
+    Eisenstat & Walker (1996), choice 2 with γ = 0.9, exponent 2, capped at η_max (default 1e-2): while
     Newton converges quadratically the next residual is ~‖r‖², so solving K Δd = r much more
     accurately than ‖r_k‖²/‖r_{k−1}‖² is wasted; the safeguard 0.1·target/‖r‖ stops
     over-solving in the last iteration (its linear residual only has to be 10× below the
@@ -90,10 +90,12 @@ def forcing_term(rn: float, rn_prev: float | None, target: float) -> float:
         Residual norms of this and the previous Newton iteration (N); ``rn_prev`` None at the first.
     target : float
         Residual norm that ends the iteration (N).
+    eta_max : float
+        Cap of η (``solve.newton.forcing_max``).
     """
     if rn_prev is None or rn_prev <= 0.0:
-        return ETA_MAX
-    return float(min(ETA_MAX, max(0.9 * (rn / rn_prev) ** 2, 0.1 * target / rn)))
+        return eta_max
+    return float(min(eta_max, max(0.9 * (rn / rn_prev) ** 2, 0.1 * target / rn)))
 
 
 def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0) -> NewtonResult:
@@ -137,7 +139,7 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0) -> New
         if it == cfg.max_iterations:
             rows.append(NewtonRow(step, t, it, rn, rel, 0.0, 0.0))
             break
-        eta = forcing_term(rn, rn_prev, cfg.residual_tol * scale + system.atol)
+        eta = forcing_term(rn, rn_prev, cfg.residual_tol * scale + system.atol, cfg.forcing_max)
         rn_prev = rn
         try:
             linsolver.prepare(system, state)
