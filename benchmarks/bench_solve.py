@@ -22,9 +22,13 @@ Usage::
 
     .venv/bin/python benchmarks/bench_solve.py                       # the DEFAULT_CASES below
     .venv/bin/python benchmarks/bench_solve.py --cases 5k:cg_amg 5k:direct 20k:direct_reuse
+    .venv/bin/python benchmarks/bench_solve.py --append --cases 75k:cg_amg:1e-5   # Newton tolerance 1e-5
 
-Backends (``--cases SIZE:BACKEND``): ``direct`` (PARDISO when MKL is installed, else SuperLU),
-``direct_reuse`` (the same, kept factors precondition CG), ``superlu``, ``cg_amg``.
+Backends (``--cases SIZE:BACKEND``): ``direct`` (PARDISO when MKL is installed, else SuperLU; factorised at
+every Newton iteration), ``direct_reuse`` (the default: kept factors precondition CG), ``superlu``, ``cg_amg``. An optional third
+field sets the Newton residual tolerance (default 1e-8; the energy tolerance follows as 100·tol²),
+e.g. ``75k:cg_amg:1e-5``; such cases are labelled "cg_amg, Newton 1e-5" in the tables. A fourth sets
+``newton.forcing_max`` (η_max, default 1e-2), e.g. ``5k:cg_amg:1e-2:0.1``.
 """
 
 from __future__ import annotations
@@ -47,7 +51,7 @@ SIZES = {"2k": (0.40, 5), "5k": (0.50, 8), "10k": (0.62, 11), "20k": (0.72, 15),
 DEFAULT_CASES = ["5k:direct", "5k:direct_reuse", "5k:cg_amg", "10k:direct_reuse", "10k:cg_amg", "20k:direct_reuse"]
 # backend tokens of --cases → solve.solver settings
 BACKENDS = {
-    "direct": {"backend": "direct"},                                         # PARDISO if MKL is installed
+    "direct": {"backend": "direct", "reuse_factorization": False},           # PARDISO if MKL is installed; factorise every time
     "direct_reuse": {"backend": "direct", "reuse_factorization": True},      # kept factors precondition CG
     "superlu": {"backend": "direct", "direct_engine": "superlu"},
     "cg_amg": {"backend": "cg_amg"},
@@ -92,10 +96,46 @@ def leg_case(size: str, penalty: float | None, **solve_keys):
     return model, parse_section(SolveConfig, sec, "solve")
 
 
-def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: float | None) -> dict:
+def newton_tolerances(rtol: float | None, eta_max: float | None = None) -> dict:
+    """``solve.newton`` keys for a Newton residual tolerance ``rtol`` (None: the defaults, 1e-8 and
+    1e-14; the energy tolerance keeps the default ratio, 100 · rtol²) and the cap ``eta_max`` of
+    the linear tolerance (None: default 1e-2)."""
+    out = {} if rtol is None else {"residual_tol": rtol, "energy_tol": 100.0 * rtol**2}
+    if eta_max is not None:
+        out["forcing_max"] = eta_max
+    return {"newton": out} if out else {}
+
+
+def parse_case(spec: str) -> tuple[str, str, float | None, float | None]:
+    """``SIZE:BACKEND[:NEWTON_TOL[:ETA_MAX]]`` → (size, backend, Newton residual tolerance, largest
+    linear tolerance η_max); None where not given (the defaults)."""
+    parts = spec.split(":")
+    if not 2 <= len(parts) <= 4 or parts[0] not in SIZES or parts[1] not in BACKENDS:
+        raise ValueError(f"case {spec!r}: expected SIZE:BACKEND[:NEWTON_TOL[:ETA_MAX]] with SIZE in {', '.join(SIZES)} "
+                         f"and BACKEND in {', '.join(BACKENDS)}")
+    nums = [float(x) for x in parts[2:]] + [None, None]
+    return parts[0], parts[1], nums[0], nums[1]
+
+
+def case_label(backend: str, newton_tol: float | None, eta_max: float | None = None) -> str:
+    """Backend name in the tables, with the Newton tolerance and η_max where not the defaults."""
+    out = backend if newton_tol is None else f"{backend}, Newton {newton_tol:g}"
+    return out if eta_max is None else f"{out}, η_max {eta_max:g}"
+
+
+def final_residuals(newton: dict) -> np.ndarray:
+    """Relative residual of the converged state of each load step (the last Newton row of each step)."""
+    step = np.asarray(newton["step"])
+    last = np.flatnonzero(np.r_[step[1:] != step[:-1], True])
+    return np.asarray(newton["relative_residual"])[last]
+
+
+def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: float | None,
+             newton_tol: float | None = None, eta_max: float | None = None) -> dict:
     from pixmuscle.mechanics.solve import solve
 
-    model, cfg = leg_case(size, penalty, steps=steps, activation={"from": 0.0, "to": alpha_to}, solver=BACKENDS[backend])
+    model, cfg = leg_case(size, penalty, steps=steps, activation={"from": 0.0, "to": alpha_to}, solver=BACKENDS[backend],
+                          **newton_tolerances(newton_tol, eta_max))
     t1 = time.perf_counter()
     res = solve(model, cfg)
     wall = time.perf_counter() - t1
@@ -108,6 +148,8 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
         "tissue_nodes": {"muscle": int(tissue[1]), "connective_tissue": int(tissue[2]), "fat": int(tissue[3])},
         "spacing_cm": list(SPACING), "steps": steps, "alpha_to": alpha_to, "status": res.status,
         "penalty_factor": cfg.penalty.factor, "beta_N_per_cm3": info["beta"],
+        "newton_residual_tol": cfg.newton.residual_tol, "newton_energy_tol": cfg.newton.energy_tol,
+        "forcing_max": cfg.newton.forcing_max,
         "build_s": round(info["build_s"], 2),
         "pattern_s": round(info.get("pattern_s", 0.0), 2),
         "assembly_s_per_iteration": round(info["assembly_s"] / max(info["n_assembly"], 1), 3),
@@ -126,6 +168,7 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
         "preconditioner_nnz_per_row": info.get("preconditioner_nnz_per_row"),
         "newton_iterations_per_step": res.iterations.tolist(), "newton_iterations_total": n_it,
         "cutbacks": int(np.sum(res.cutbacks)),
+        "final_relative_residual_max": float(np.max(final_residuals(res.newton))) if len(res.newton["step"]) else None,
         "material_s_per_evaluation": round(info["material_s"] / max(info["n_evaluate"], 1), 3),
         "sweep_s": round(wall, 1),
         "force_z_max_N": [float(f) for f in res.force("z_max")],
@@ -207,11 +250,15 @@ EXPONENT_KEYS = ("build_s", "assembly_s_per_iteration", "linear_s_per_iteration"
                  "newton_iterations_total", "sweep_s", "peak_rss_GB")
 
 
+def label(c: dict) -> str:
+    return c.get("label", c.get("backend", "?"))
+
+
 def growth_exponents(cases: list[dict]) -> dict:
     """Least-squares slope of log(quantity) against log(nodes) per backend (needs ≥ 2 sizes)."""
     out = {}
-    for be in sorted({c["backend"] for c in cases}):
-        cs = [c for c in cases if c["backend"] == be and c["status"] == "complete"]
+    for be in sorted({label(c) for c in cases}):
+        cs = [c for c in cases if label(c) == be and c.get("status") == "complete"]
         if len({c["nodes"] for c in cs}) < 2:
             continue
         n = np.log([c["nodes"] for c in cs])
@@ -223,10 +270,28 @@ def growth_exponents(cases: list[dict]) -> dict:
     return out
 
 
-def write_tables(cases, argv):
+def force_deviation(case: dict, cases: list[dict]) -> float | None:
+    """Largest difference of the force curve F_z(z_max) of ``case`` from that of the direct solver
+    (``direct``, else ``direct_reuse``; default tolerances) on the same model, relative to the largest force; None when
+    that reference was not run."""
+    ref = sorted((c for c in cases if c.get("status") == "complete" and label(c) in ("direct", "direct_reuse")
+                  and c["nodes"] == case["nodes"]), key=label)
+    if not ref or case.get("status") != "complete":
+        return None
+    f, f0 = np.asarray(case["force_z_max_N"]), np.asarray(ref[0]["force_z_max_N"])
+    if f.shape != f0.shape:
+        return None
+    return float(np.max(np.abs(f - f0)) / np.max(np.abs(f0)))
+
+
+def dev_text(x: float | None) -> str:
+    return "—" if x is None else f"{x:.1e}"
+
+
+def write_tables(cases, command: str):
     meta = {"python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count(),
             "platform": platform.platform(), "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-            "command": ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)}
+            "command": command}
     exps = growth_exponents(cases)
     (OUT / "bench_solve.json").write_text(json.dumps({"meta": meta, "cases": cases, "growth_exponents": exps}, indent=1))
     lines = ["# bench_solve: isometric activation sweep of the SYNTHETIC leg (paper Example 2 set-up)", "",
@@ -234,21 +299,24 @@ def write_tables(cases, argv):
              f"Command: `{meta['command']}`", "",
              "| nodes | backend | nnz/row (K / precond.) | build (s) | assembly / Newton it (s) | "
              "linear / Newton it (s) | factorisations (factor nnz/row) | CG its / Newton it | Newton its / step | cutbacks | "
-             "sweep (s) | peak RSS (GB) | F_z(z_max) at α=0.95 (N) | status |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for c in sorted(cases, key=lambda c: (c.get("backend", ""), c.get("nodes", 0))):
+             "sweep (s) | peak RSS (GB) | F_z(z_max) at α=0.95 (N) | max ΔF vs direct | status |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for c in sorted(cases, key=lambda c: (label(c), c.get("nodes", 0))):
         if "error" in c:
-            lines.append(f"| {c.get('size')} | {c.get('backend')} | | | | | | | | | | {c.get('peak_rss_GB', '')} | | {c['error'][:60]} |")
+            lines.append(f"| {c.get('size')} | {label(c)} | | | | | | | | | | {c.get('peak_rss_GB', '')} | | | {c['error'][:60]} |")
             continue
         pre = c["preconditioner_nnz_per_row"]
         nnz = f"{c['nnz_per_row'] or '—'} / {round(pre) if pre else '—'}"
         fac = f"{c['factorizations']} ({c['factor_nnz_per_row']})" if c.get("factorizations") else "—"
-        lines.append(f"| {c['nodes']} | {c['backend']} | {nnz} | {c['build_s']} | "
+        lines.append(f"| {c['nodes']} | {label(c)} | {nnz} | {c['build_s']} | "
                      f"{c['assembly_s_per_iteration']} | {c['linear_s_per_iteration']} | {fac} | {c['cg_iterations_per_newton'] or '—'} | "
                      f"{c['newton_iterations_per_step'][1:]} | {c['cutbacks']} | {c['sweep_s']} | {c['peak_rss_GB']} | "
-                     f"{c['force_z_max_N'][-1]:.6f} | {c['status'][:30]} |")
+                     f"{c['force_z_max_N'][-1]:.6f} | {dev_text(force_deviation(c, cases))} | {c['status'][:30]} |")
     lines += ["", "Penalty factor: " + ", ".join(sorted({f"{c['penalty_factor']:g}" for c in cases if "error" not in c}))
-              + "; commands per case in bench_solve.json."]
+              + "; commands per case in bench_solve.json. max ΔF vs direct: largest difference of the force curve "
+              "(all load steps) from the direct solver (`direct`, else `direct_reuse`, the default up to 15k nodes; Newton "
+              "tolerance 1e-8) on the same model, "
+              "relative to its largest force."]
     if exps:
         lines += ["", "Growth exponents (slope of log quantity against log nodes):", "",
                   "| backend | " + " | ".join(EXPONENT_KEYS) + " |", "|---|" + "---|" * len(EXPONENT_KEYS)]
@@ -266,6 +334,8 @@ def main(argv=None):
     p.add_argument("--penalty", type=float, default=None, help="penalty factor (default: the solver default)")
     p.add_argument("--append", action="store_true",
                    help="merge into the existing results file (cases measured again are replaced)")
+    p.add_argument("--tables", action="store_true",
+                   help="only rewrite bench_solve.md (and the exponents in bench_solve.json) from bench_solve.json")
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)  # internal: run one case, print JSON
     p.add_argument("--probe", default=None, metavar="SIZE",
                    help="measure one Newton system at SIZE (no sweep); writes results/bench_solve_probe_SIZE.json")
@@ -282,19 +352,28 @@ def main(argv=None):
             print(json.dumps(res, indent=1))
             return 0
     if args.one:
-        size, backend = args.one.split(":")
-        print("RESULT " + json.dumps(run_case(size, backend, args.steps, args.alpha, args.penalty)), flush=True)
+        size, backend, tol, eta = parse_case(args.one)
+        res = run_case(size, backend, args.steps, args.alpha, args.penalty, tol, eta)
+        res.update(case=args.one, label=case_label(backend, tol, eta))
+        print("RESULT " + json.dumps(res), flush=True)
+        return 0
+    command = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
+    if args.tables:
+        old = json.loads((OUT / "bench_solve.json").read_text())
+        write_tables(old["cases"], old["meta"]["command"])
         return 0
     OUT.mkdir(parents=True, exist_ok=True)
     cases = []
     if args.append and (OUT / "bench_solve.json").exists():  # keep earlier cases not measured again now
         again = set(args.cases)
         cases = [c for c in json.loads((OUT / "bench_solve.json").read_text())["cases"]
-                 if f"{c.get('size')}:{c.get('backend')}" not in again]
+                 if c.get("case", f"{c.get('size')}:{c.get('backend')}") not in again]
     for case in args.cases:
         print(f"== {case}", flush=True)
-        if case.split(":")[1] not in BACKENDS:
-            p.error(f"unknown backend in {case!r}: expected one of {', '.join(BACKENDS)}")
+        try:
+            parse_case(case)
+        except ValueError as exc:
+            p.error(str(exc))
         cmd = [sys.executable, __file__, "--one", case, "--steps", str(args.steps), "--alpha", str(args.alpha)]
         if args.penalty is not None:
             cmd += ["--penalty", str(args.penalty)]
@@ -307,11 +386,11 @@ def main(argv=None):
                                             + [f"--{k} {v}" for k, v in (("steps", args.steps), ("alpha", args.alpha))]
                                             + ([f"--penalty {args.penalty}"] if args.penalty is not None else []))
         else:
-            size, backend = case.split(":")
-            cases.append({"size": size, "backend": backend, "error": (proc.stderr.strip().splitlines() or ["?"])[-1],
+            size, backend, tol, eta = parse_case(case)
+            cases.append({"size": size, "backend": backend, "case": case, "label": case_label(backend, tol, eta), "error": (proc.stderr.strip().splitlines() or ["?"])[-1],
                           "wall_s": round(time.perf_counter() - t0, 1)})
         print(json.dumps(cases[-1])[:600], flush=True)
-        write_tables(cases, argv)
+        write_tables(cases, command)
     return 0
 
 
