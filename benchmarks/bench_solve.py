@@ -48,7 +48,10 @@ import numpy as np
 OUT = pathlib.Path(__file__).parent / "results"
 SPACING = (0.15625, 0.15625, 0.5)
 SIZES = {"2k": (0.40, 5), "5k": (0.50, 8), "10k": (0.62, 11), "20k": (0.72, 15), "75k": (1.04, 25)}
-DEFAULT_CASES = ["5k:direct", "5k:direct_reuse", "5k:cg_amg", "10k:direct_reuse", "10k:cg_amg", "20k:direct_reuse"]
+# the records of docs/performance.md; about 2 h in all, 40 min of it the 74k sweep
+DEFAULT_CASES = ["5k:direct", "5k:direct_reuse", "5k:cg_amg", "10k:direct_reuse", "10k:cg_amg", "20k:direct_reuse",
+                 "5k:direct_reuse:1e-3", "5k:direct_reuse:1e-2", "5k:cg_amg:1e-2", "5k:cg_amg:1e-2:0.1",
+                 "10k:cg_amg:1e-2", "20k:cg_amg:1e-2", "75k:cg_amg:1e-2"]
 # backend tokens of --cases → solve.solver settings
 BACKENDS = {
     "direct": {"backend": "direct", "reuse_factorization": False},           # PARDISO if MKL is installed; factorise every time

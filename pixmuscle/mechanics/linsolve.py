@@ -476,6 +476,7 @@ class KrylovAMGSolver(LinearSolver):
         import pyamg
 
         t0 = time.perf_counter()
+        self._M = None  # release the old hierarchy before the new one is built (peak memory)
         Kp = self._system.preconditioner_matrix(self._state, self.reach)
         self.info["preconditioner_nnz_per_row"] = Kp.nnz / Kp.shape[0]
         ml = pyamg.smoothed_aggregation_solver(
