@@ -22,12 +22,12 @@ Usage::
 
     .venv/bin/python benchmarks/bench_solve.py                       # the DEFAULT_CASES below
     .venv/bin/python benchmarks/bench_solve.py --cases 5k:cg_amg 5k:direct 20k:direct_reuse
-    .venv/bin/python benchmarks/bench_solve.py --append --cases 75k:cg_amg:1e-5   # Newton tolerance 1e-5
+    .venv/bin/python benchmarks/bench_solve.py --append --cases 75k:cg_amg:1e-2   # Newton tolerance 1e-2
 
 Backends (``--cases SIZE:BACKEND``): ``direct`` (PARDISO when MKL is installed, else SuperLU; factorised at
 every Newton iteration), ``direct_reuse`` (the default: kept factors precondition CG), ``superlu``, ``cg_amg``. An optional third
 field sets the Newton residual tolerance (default 1e-8; the energy tolerance follows as 100·tol²),
-e.g. ``75k:cg_amg:1e-5``; such cases are labelled "cg_amg, Newton 1e-5" in the tables. A fourth sets
+e.g. ``75k:cg_amg:1e-2``; such cases are labelled "cg_amg, Newton 0.01" in the tables. A fourth sets
 ``newton.forcing_max`` (η_max, default 1e-2), e.g. ``5k:cg_amg:1e-2:0.1``.
 """
 

@@ -372,5 +372,6 @@ def test_forcing_term_follows_eisenstat_walker_with_safeguards():
     assert forcing_term(1e-3, 1.0, 1e-12) == pytest.approx(0.9e-6)      # quadratic phase: (1e-3)² · 0.9
     assert forcing_term(1e-6, 1e-3, 1e-9) == pytest.approx(0.1 * 1e-9 / 1e-6)  # last iteration: safeguard
     assert forcing_term(0.5, 0.6, 1e-8) == 1e-2                         # slow convergence: capped
-    assert forcing_term(0.5, 0.6, 1e-8, eta_max=0.1) == pytest.approx(0.9 * (0.5 / 0.6) ** 2 if 0.9 * (0.5 / 0.6) ** 2 < 0.1 else 0.1)
+    assert forcing_term(0.5, 0.6, 1e-8, eta_max=0.1) == 0.1             # 0.9 (0.5/0.6)² = 0.63: capped
+    assert forcing_term(0.1, 1.0, 1e-8, eta_max=0.1) == pytest.approx(0.009)  # below the cap: 0.9 (0.1)²
     assert forcing_term(5.0, None, 1e-8, eta_max=0.1) == 0.1

@@ -446,7 +446,7 @@ class KrylovAMGSolver(LinearSolver):
     matrix + AMG set-up), the hierarchy is rebuilt from the next Newton iteration's tangent. So
     the time lost to a stale preconditioner never exceeds the time a rebuild costs, whatever
     the model size; on small models (cheap builds) it rebuilds often, on large ones (a build
-    costs ~45 s at 74k nodes) it keeps the hierarchy as long as it pays. The matrix-free
+    costs 45–60 s at 74k nodes) it keeps the hierarchy as long as it pays. The matrix-free
     operator is always the exact tangent, so a stale preconditioner costs iterations, never
     accuracy.
     """
