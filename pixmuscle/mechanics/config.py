@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import field
+from pathlib import Path
 from typing import Literal
 
 from .materials import CONNECTIVE_TISSUE, FAT, MUSCLE
@@ -194,9 +195,11 @@ class SolveConfig:
     """Section ``solve``: load steps, activation ramp, boundary conditions and numerics."""
 
     steps: int = field(default=10, metadata={"range": (1, None), "doc": "number of load steps"})
-    activation: dict[str, float] = field(
+    activation: dict[str, float | dict[str, float] | Path] = field(
         default_factory=lambda: {"from": 0.0, "to": 1.0},
-        metadata={"doc": "{from: α0, to: α1}: muscle activation ramped linearly over the steps (0..1)"},
+        metadata={"doc": "{from: α0, to: α1[, image: file]}: muscle activation ramped linearly over the steps (0..1); "
+                         "from/to each a number or a mapping muscle name → value with optional 'default'; "
+                         "image: NIfTI 0..1 per voxel multiplying both (:mod:`pixmuscle.mechanics.activation`)"},
     )
     boundary_conditions: list[BoundaryCondition] = field(default_factory=_default_bcs)
     materials: MaterialsConfig = field(default_factory=MaterialsConfig)
@@ -208,26 +211,58 @@ class SolveConfig:
 
     def __post_init__(self):
         act = dict(self.activation)
-        bad = [k for k in act if k not in ("from", "to")]
+        bad = [k for k in act if k not in ("from", "to", "image")]
         if bad:
-            raise ValueError(f"activation: unknown key {bad[0]!r}; expected 'from' and 'to'")
+            raise ValueError(f"activation: unknown key {bad[0]!r}; expected 'from', 'to' and optionally 'image'")
         act.setdefault("from", 0.0)
         act.setdefault("to", 1.0)
-        for k, v in act.items():
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= float(v) <= 1.0:
-                raise ValueError(f"activation.{k}: expected a number in [0, 1], got {v!r}")
-        object.__setattr__(self, "activation", {"from": float(act["from"]), "to": float(act["to"])})
+        act.setdefault("image", None)
+        for k in ("from", "to"):
+            act[k] = _activation_value(act[k], f"activation.{k}")
+        if act["image"] is not None:
+            if not isinstance(act["image"], Path):
+                raise ValueError(f"activation.image: expected a file path (NIfTI, 0..1 per voxel), got {act['image']!r}")
+            if not act["image"].exists():
+                raise ValueError(f"activation.image: file not found: {act['image']}")
+        object.__setattr__(self, "activation", act)
         for i, bc in enumerate(self.boundary_conditions):
             if not isinstance(bc, BoundaryCondition):
                 raise ValueError(f"boundary_conditions[{i}]: expected a mapping")
 
     @property
+    def uniform_activation(self) -> bool:
+        """True when every muscle node has the same α (numbers for from/to, no image)."""
+        a = self.activation
+        return not isinstance(a["from"], dict) and not isinstance(a["to"], dict) and a.get("image") is None
+
+    @property
     def alpha_from(self) -> float:
-        return self.activation["from"]
+        """α at the start of the ramp (uniform activation; else the ``default`` value)."""
+        return _nominal(self.activation["from"])
 
     @property
     def alpha_to(self) -> float:
-        return self.activation["to"]
+        """α at the end of the ramp (uniform activation; else the ``default`` value)."""
+        return _nominal(self.activation["to"])
+
+
+def _activation_value(v, where: str):
+    """A number in [0, 1], or a mapping name → number in [0, 1] (muscle names are checked against the model)."""
+    if isinstance(v, dict):
+        out = {}
+        for name, x in v.items():
+            if isinstance(x, bool) or not isinstance(x, (int, float)) or not 0.0 <= float(x) <= 1.0:
+                raise ValueError(f"{where}.{name}: expected a number in [0, 1], got {x!r}")
+            out[str(name)] = float(x)
+        return out
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= float(v) <= 1.0:
+        got = repr(v.name) if isinstance(v, Path) else repr(v)
+        raise ValueError(f"{where}: expected a number in [0, 1] or a mapping muscle name → number, got {got}")
+    return float(v)
+
+
+def _nominal(v) -> float:
+    return float(v.get("default", 0.0)) if isinstance(v, dict) else float(v)
 
 
 def bc_name(bc: BoundaryCondition, index: int) -> str:

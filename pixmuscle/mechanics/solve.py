@@ -114,6 +114,7 @@ class MechanicalSystem:
         self._support = None
         self._g = None
         self._assemblers = {}
+        self.activation = None  # ActivationRamp (per-node α), or None: α is the scalar of the load ramp
         self.atol = 0.0
         self.timings = {"material_s": 0.0, "assembly_s": 0.0, "n_evaluate": 0, "n_assembly": 0}
 
@@ -148,7 +149,9 @@ class MechanicalSystem:
 
     def _material_kw(self, code, idx, alpha):
         if code == MUSCLE:
-            return {"fiber": self.fiber[idx], "activation": alpha}
+            # per-node activation (issue 18): ``alpha`` is then the ramp parameter s of the ActivationRamp
+            act = alpha if self.activation is None else self.activation.at(alpha)[idx]
+            return {"fiber": self.fiber[idx], "activation": act}
         return {}
 
     def material_response(self, F: np.ndarray, alpha: float, tangent: bool = True):
@@ -336,7 +339,7 @@ def _psi_nodes(model: Model, cfg: SolveConfig, support) -> sp.csr_matrix:
                                          order=cfg.support.order, support_shape=cfg.support.shape))
 
 
-def solve(model: Model, cfg: SolveConfig | None = None, progress=None) -> Results:
+def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activation=None) -> Results:
     """Solve the finite-strain equilibrium of a pixel-point model over the load steps.
 
     Parameters
@@ -346,6 +349,10 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None) -> Result
         Defaults: paper settings (see :mod:`pixmuscle.mechanics.config`).
     progress : object with ``advance(n=1, **fields)``, optional
         Advanced once per converged load step with α and the final Newton residual.
+    activation : ActivationRamp, optional
+        Per-node α at the start and end of the ramp (:mod:`.activation`); default: built from
+        ``cfg.activation`` (numbers or per-muscle mappings; an image needs the stage layer).
+        ``/steps/alpha`` then holds the mean α of the muscle nodes.
 
     Returns
     -------
@@ -362,7 +369,12 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None) -> Result
     """
     cfg = cfg or SolveConfig()
     t_start = time.perf_counter()
+    if activation is None and not cfg.uniform_activation:
+        from .activation import activation_ramp
+
+        activation = activation_ramp(model, cfg.activation)
     system, info = build_system(model, cfg)
+    system.activation = activation
     psi_nodes = _psi_nodes(model, cfg, system.scni.support)
     linsolver = make_solver(cfg.solver.backend, model.X, auto_direct_max_dofs=cfg.solver.auto_direct_max_dofs,
                             rtol=cfg.solver.rtol, maxiter=cfg.solver.maxiter, reuse=cfg.solver.reuse_factorization,
@@ -392,22 +404,23 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None) -> Result
     def on_step(rec):
         st = rec.state
         steps.append(dict(
-            alpha=rec.alpha, t=rec.t, iterations=rec.iterations, cutbacks=rec.cutbacks, d=st.d.copy(),
+            alpha=rec.alpha if activation is None else activation.mean(rec.alpha), t=rec.t, iterations=rec.iterations, cutbacks=rec.cutbacks, d=st.d.copy(),
             u=np.asarray(psi_nodes @ st.d), reaction=system.constraints.reactions(st.d, rec.t),
             prescribed=system.constraints.prescribed(rec.t), cauchy=cauchy_voigt(system.cauchy(st)), rows=rec.rows,
         ))
         steps[-1]["max_principal"] = max_principal(steps[-1]["cauchy"])
         last_rel = rec.rows[-1].relative_residual if rec.rows else 0.0
         _LOG.info("load step %d of %d: α = %.4g, load factor %.4g, %d Newton iterations, %d cutbacks, relative residual %.2e",
-                  rec.step, cfg.steps, rec.alpha, rec.t, rec.iterations, rec.cutbacks, last_rel)
+                  rec.step, cfg.steps, steps[-1]["alpha"], rec.t, rec.iterations, rec.cutbacks, last_rel)
         if progress is not None:
             last = rec.rows[-1].relative_residual if rec.rows else 0.0
-            progress.advance(1, alpha=float(rec.alpha), residual=float(last))
+            progress.advance(1, alpha=float(steps[-1]["alpha"]), residual=float(last))
 
     status = "complete"
     error = None
     try:
-        _newton.load_steps(system, cfg.steps, cfg.alpha_from, cfg.alpha_to, cfg.newton, _Timed(), on_step=on_step)
+        ramp = (cfg.alpha_from, cfg.alpha_to) if activation is None else (0.0, 1.0)
+        _newton.load_steps(system, cfg.steps, *ramp, cfg.newton, _Timed(), on_step=on_step)
     except SolverError as exc:
         status = f"failed: {exc}"
         error = exc

@@ -9,13 +9,45 @@ from typing import Any
 
 from ..config import parse_section
 from ..errors import InputError, SolverError
+from ..imaging.nifti import load_volume
+from ..mechanics.activation import ActivationRamp, activation_ramp, per_muscle_summary
 from ..mechanics.config import SolveConfig
 from ..mechanics.results import save_results
 from ..mechanics.solve import solve
 from ..model.model import load_model
+from ..model.tissues import MUSCLE
 from ..progress import progress as _progress
 
 _LOG = logging.getLogger(__name__)
+
+
+def model_activation(model, cfg: SolveConfig) -> ActivationRamp | None:
+    """Per-node activation of ``cfg.activation`` for this model (reads the activation image); None if uniform.
+
+    Raises InputError for muscle names the model does not have and for a bad image.
+    """
+    if cfg.uniform_activation:
+        return None
+    image = None
+    path = cfg.activation.get("image")
+    if path is not None:
+        vol = load_volume(path, kind="image", allow_empty=True)
+        image = (vol.data, vol.affine)
+    return activation_ramp(model, cfg.activation, image)
+
+
+def _per_muscle(cfg: SolveConfig, ramp: ActivationRamp | None, model) -> dict:
+    """Mean α per muscle at the start and end of the ramp (stored in the results' solver_info)."""
+    if ramp is None:
+        ramp = ActivationRamp.uniform(cfg.alpha_from, cfg.alpha_to, model.tissue == MUSCLE)
+    return per_muscle_summary(ramp, model)
+
+
+def _describe(cfg: SolveConfig, ramp: ActivationRamp | None, model) -> str:
+    if ramp is None:
+        return f"{cfg.alpha_from:.3g} → {cfg.alpha_to:.3g}"
+    per = per_muscle_summary(ramp, model)
+    return ", ".join(f"{k} {a:.3g} → {b:.3g}" for k, (a, b) in per.items()) or "none (no muscle nodes)"
 
 
 def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_path: str | Path, progress: Any = None) -> Path:
@@ -51,20 +83,24 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
     if not isinstance(cfg, SolveConfig):
         cfg = parse_section(SolveConfig, cfg, "solve")
     model = load_model(model_path)
-    _LOG.info("solve: %d nodes, %d load steps, activation %.3g → %.3g", model.n_nodes, cfg.steps, cfg.alpha_from, cfg.alpha_to)
+    ramp = model_activation(model, cfg)
+    _LOG.info("solve: %d nodes, %d load steps, activation %s", model.n_nodes, cfg.steps, _describe(cfg, ramp, model))
+    inputs = [Path(model_path)] + ([cfg.activation["image"]] if cfg.activation.get("image") is not None else [])
     try:
         if progress is None:
             with _progress(cfg.steps + 1, "load step") as bar:
-                results = solve(model, cfg, progress=bar)
+                results = solve(model, cfg, progress=bar, activation=ramp)
         else:
-            results = solve(model, cfg, progress=progress or None)
+            results = solve(model, cfg, progress=progress or None, activation=ramp)
     except SolverError as exc:
         partial = getattr(exc, "results", None)
         if partial is not None:
-            save_results(out_path, partial, config=cfg, inputs=[Path(model_path)])
+            partial.info["activation"] = _per_muscle(cfg, ramp, model)
+            save_results(out_path, partial, config=cfg, inputs=inputs)
             _LOG.error("solve failed; converged steps written to %s (status: %s)", out_path, partial.status)
         raise
-    save_results(out_path, results, config=cfg, inputs=[Path(model_path)])
+    results.info["activation"] = _per_muscle(cfg, ramp, model)
+    save_results(out_path, results, config=cfg, inputs=inputs)
     info = results.info
     _LOG.info("solve: done in %.1f s (build %.1f s, %d assemblies %.1f s, linear solves %.1f s)", info.get("total_s", 0.0),
               info.get("build_s", 0.0), info.get("n_assembly", 0), info.get("assembly_s", 0.0),
