@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.pixmuscle-installed
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test,dev,fast]"
+	$(BIN)/python -m pip install --quiet -e ".[test,dev,fast,dwi]"
 	touch $(STAMP)
 
 venv: $(STAMP)

@@ -27,7 +27,22 @@ from typing import Literal
 
 from pixmuscle.errors import InputError
 
-__all__ = ["TwoPhaseConfig", "BoneConfig", "MultiphaseConfig", "SegmentConfig"]
+__all__ = ["TwoPhaseConfig", "BoneConfig", "MultiphaseConfig", "DWIConfig", "SegmentConfig"]
+
+
+@dataclass(frozen=True)
+class DWIConfig:
+    """A diffusion-weighted series as from the scanner; the tensor is fitted with dipy
+    (:mod:`pixmuscle.imaging.dwi`, optional extra ``pixmuscle[dwi]``)."""
+
+    image: Path = field(metadata={"must_exist": True, "doc": "4-D NIfTI, one volume per gradient"})
+    bvals: Path = field(metadata={"must_exist": True, "doc": "b-values file (FSL .bval, s/mm^2)"})
+    bvecs: Path = field(metadata={"must_exist": True, "doc": "b-vectors file (FSL .bvec, 3 rows)"})
+    bvecs_convention: Literal["fsl", "world"] = field(default="fsl", metadata={
+        "doc": "fsl: voxel axes of the stored image, x negated for a positive-determinant affine "
+               "(FSL, dcm2niix); world: scanner axes"})
+    b0_threshold: float = field(default=50.0, metadata={
+        "range": (0.0, None), "doc": "b-values up to this (s/mm^2) are non-weighted volumes"})
 
 
 @dataclass(frozen=True)
@@ -108,6 +123,9 @@ class SegmentConfig:
     dti_v1: Path | None = field(default=None, metadata={
         "must_exist": True, "doc": "principal eigenvector image (NIfTI, 3 components), used "
                                    "when no tensor is given"})
+    dwi: DWIConfig | None = field(default=None, metadata={
+        "doc": "diffusion-weighted series {image, bvals, bvecs}: the tensor is fitted (dipy) "
+               "instead of reading dti_tensor"})
     tensor_order: Literal["fsl", "dipy", "mrtrix"] = field(default="fsl", metadata={
         "doc": "component order of the tensor file"})
     dti_components: Literal["world", "voxel", "fsl"] = field(default="world", metadata={
@@ -141,6 +159,9 @@ class SegmentConfig:
     qc_png: bool = field(default=True, metadata={"doc": "write per-slice overlay PNGs"})
 
     def __post_init__(self):
+        if self.dwi is not None and (self.dti_tensor is not None or self.dti_v1 is not None):
+            raise InputError("segment.dwi: give either a DWI series (dwi) or a fitted DTI "
+                             "(dti_tensor / dti_v1), not both")
         names = list(self.seeds)
         for name, pts in self.seeds.items():
             if not pts:

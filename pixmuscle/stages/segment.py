@@ -1,8 +1,9 @@
 """``segment`` stage: NIfTI MRI + DTI (+ IMCT/IMAT masks) -> ``segmentation.h5``.
 
 Reads the inputs named in the ``segment`` config section (:class:`~pixmuscle.segmentation.
-config.SegmentConfig`), maps the DTI onto the MRI grid through the affines (tensors are
-interpolated, never eigenvectors), runs :func:`pixmuscle.segmentation.pipeline.segment_volume`
+config.SegmentConfig`), fits the tensor of a scanner DWI series when ``segment.dwi`` is given
+(:mod:`pixmuscle.stages.dwi_qc`: FA/MD/V1 maps in the QC folder), maps the DTI onto the MRI grid
+through the affines (tensors are interpolated, never eigenvectors), runs :func:`pixmuscle.segmentation.pipeline.segment_volume`
 and writes
 
 * ``<out>`` — HDF5, schema ``pixmuscle.segmentation`` v1 (docs/architecture.md);
@@ -49,7 +50,12 @@ def _mask_on_grid(path, shape, affine, name):
     return resample_labels(vol.data != 0, vol.affine, shape, affine, name=f"{name} {path}")
 
 
-def _dti_on_grid(cfg, shape, affine):
+def _dti_on_grid(cfg, shape, affine, qc_dir=None):
+    if cfg.dwi is not None:
+        from pixmuscle.stages.dwi_qc import dwi_tensor_with_qc
+
+        fit = dwi_tensor_with_qc(cfg.dwi, qc_dir)
+        return resample_tensor_to_grid(fit.tensor, fit.affine, shape, affine)
     if cfg.dti_tensor is not None:
         vol = load_volume(cfg.dti_tensor, kind="tensor", components=cfg.dti_components,
                           tensor_order=cfg.tensor_order)
@@ -60,8 +66,8 @@ def _dti_on_grid(cfg, shape, affine):
         v, has = resample_vectors_to_grid(vol.data, vol.affine, shape, affine)
         # rank-one tensors v v^T carry the direction; trace 1 where there is data
         return v[..., :, None] * v[..., None, :], has
-    raise InputError("segment: no DTI input; set segment.dti_tensor (preferred) or "
-                     "segment.dti_v1")
+    raise InputError("segment: no DTI input; set segment.dwi (a scanner DWI series), "
+                     "segment.dti_tensor or segment.dti_v1")
 
 
 def run_segment(cfg, out_path, progress=None):
@@ -86,14 +92,16 @@ def run_segment(cfg, out_path, progress=None):
     if cfg.mri is None:
         raise InputError("segment.mri: required key is missing (anatomical MRI, NIfTI)")
     out_path = Path(out_path)
+    stem = out_path.name[:-len(out_path.suffix)] if out_path.suffix else out_path.name
     mri = load_volume(cfg.mri, kind="image")
     shape, affine = mri.data.shape, mri.affine
-    d_grid, covered = _dti_on_grid(cfg, shape, affine)
+    d_grid, covered = _dti_on_grid(cfg, shape, affine, out_path.with_name(f"{stem}_qc"))
     imct = None if cfg.imct_mask is None else _mask_on_grid(cfg.imct_mask, shape, affine,
                                                            "segment.imct_mask")
     imat = None if cfg.imat_mask is None else _mask_on_grid(cfg.imat_mask, shape, affine,
                                                            "segment.imat_mask")
-    inputs = [p for p in (cfg.mri, cfg.dti_tensor, cfg.dti_v1, cfg.imct_mask, cfg.imat_mask)
+    dwi_files = () if cfg.dwi is None else (cfg.dwi.image, cfg.dwi.bvals, cfg.dwi.bvecs)
+    inputs = [p for p in (cfg.mri, cfg.dti_tensor, cfg.dti_v1, *dwi_files, cfg.imct_mask, cfg.imat_mask)
               if p is not None]
     if progress is None:
         from pixmuscle.progress import progress as bar
@@ -104,7 +112,6 @@ def run_segment(cfg, out_path, progress=None):
         res = segment_volume(mri.data, affine, d_grid, covered, imct, imat, cfg,
                              progress=progress)
     write_segmentation(out_path, res, affine, config=cfg, inputs=inputs)
-    stem = out_path.name[:-len(out_path.suffix)] if out_path.suffix else out_path.name
     save_volume(out_path.with_name(f"{stem}_labels.nii.gz"), res.labels, affine, kind="labels")
     save_volume(out_path.with_name(f"{stem}_muscles.nii.gz"), res.muscle_id, affine,
                 kind="labels")

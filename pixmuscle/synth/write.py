@@ -124,7 +124,26 @@ def generate_samples(outdir="data/synthetic", names=None) -> dict:
         out[name] = write_phantom(factory(**kwargs), outdir, name)
     if names == list(SAMPLES):
         out["tendon"] = {"labels": write_tendon_labels(outdir)}
+        out["leg_demo_dwi"] = write_dwi_sample(outdir)
     return out
+
+
+def write_dwi_sample(outdir="data/synthetic", prefix: str = "leg_demo", snr: float = 40.0) -> dict:
+    """SYNTHETIC scanner-style DWI of a committed sample: ``{prefix}_dwi.nii.gz`` + ``.bval`` + ``.bvec``.
+
+    Signals of the sample's DTI tensors (b = 500 s/mm², 30 directions, 2 b = 0 volumes, S_0 = 1000
+    in the leg and 20 in the air, Rician noise at SNR 40), stored in LPS voxel order with FSL
+    b-vectors for that stored affine (:mod:`pixmuscle.synth.dwi`), as a scanner export would be.
+    """
+    from pixmuscle.imaging.dti import tensor_from_components
+    from pixmuscle.synth.dwi import synthesize_dwi, write_dwi
+
+    factory, kwargs = SAMPLES[prefix]
+    ph = factory(**kwargs)
+    D = tensor_from_components(ph.dti_tensor, "fsl")
+    s0 = np.where(np.trace(D, axis1=-2, axis2=-1) > 0, 1000.0, 20.0)
+    data, bvals, g = synthesize_dwi(D, s0=s0, snr=snr, seed=int(kwargs.get("seed", 0)) + 100)
+    return write_dwi(Path(outdir) / f"{prefix}_dwi", data, ph.dti_affine, bvals, g, orientation="LPS")
 
 
 def write_tendon_labels(outdir="data/synthetic", h=(0.2, 0.2, 0.125)) -> Path:
