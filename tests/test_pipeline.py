@@ -90,12 +90,14 @@ def test_run_end_to_end(first_run):
     np.testing.assert_allclose([float(r[rz]) for r in rows], r_top[:, 2], rtol=1e-9, atol=1e-12)
     # an activated muscle held at both ends pulls on them: tension at the top end (z-up support force)
     assert r_top[-1, 2] > 0
-    vtus = sorted((out / "report").rglob("*.vtu"))
-    mesh = meshio.read(vtus[-1])
-    assert mesh.points.shape == (n_nodes, 3)
-    for field in ["displacement", "fiber_direction", "tissue", "muscle_id", "max_principal_cauchy"]:
-        assert field in mesh.point_data, field
-    np.testing.assert_allclose(mesh.point_data["displacement"], u_last, rtol=1e-6, atol=1e-12)
+    assert sorted((out / "report").rglob("*.vtu"))
+    with meshio.xdmf.TimeSeriesReader(out / "report" / "fields.xdmf") as xr:  # same series as the VTUs
+        _, cells = xr.read_points_cells()
+        _, _, cd = xr.read_data(xr.num_steps - 1)
+    assert cells[0].data.shape == (n_nodes, 8)  # one voxel cell per node
+    for field in ["displacement [cm]", "fiber_direction [1]", "tissue", "muscle_id", "max_principal_cauchy [N/cm^2]"]:
+        assert field in cd, field
+    np.testing.assert_allclose(cd["displacement [cm]"][0], u_last, rtol=1e-6, atol=1e-12)
     html = (out / "report/index.html").read_text()
     assert "data:image/png;base64" in html and "synthetic" in html.lower()
 

@@ -6,6 +6,7 @@ import csv
 import html
 import json
 import xml.etree.ElementTree as ET
+from types import SimpleNamespace
 
 import h5py
 import meshio
@@ -15,10 +16,10 @@ from fixtures_results import write_results_fixture
 
 from pixmuscle.config import parse_section
 from pixmuscle.errors import InputError
+from pixmuscle.io.results import load_results
 from pixmuscle.report import ReportConfig, plot_force_activation, tissue_table
 from pixmuscle.report.cohort import cohort_summary
 from pixmuscle.report.fields import rotate_voigt
-from pixmuscle.report.inputs import load_results
 from pixmuscle.report.slices import plane_image
 from pixmuscle.stages.report import make_report, run_report
 
@@ -89,29 +90,66 @@ def test_force_plot_overlays_curves(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------ fields
+def read_vtu(path):
+    """Points, hexahedra, cell data, point data and field data of a VTU, read by VTK's own reader."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkIOXML import vtkXMLUnstructuredGridReader
+
+    r = vtkXMLUnstructuredGridReader()
+    r.SetFileName(str(path))
+    r.Update()
+    g = r.GetOutput()
+    conn = vtk_to_numpy(g.GetCells().GetConnectivityArray()).reshape(-1, 8)
+
+    def arrays(data):
+        return {data.GetArrayName(i): vtk_to_numpy(data.GetArray(i)) for i in range(data.GetNumberOfArrays())}
+
+    fd = g.GetFieldData()
+    field = {}
+    for i in range(fd.GetNumberOfArrays()):
+        a = fd.GetAbstractArray(i)
+        field[a.GetName()] = [a.GetValue(j) for j in range(a.GetNumberOfValues())]
+    return SimpleNamespace(grid=g, points=vtk_to_numpy(g.GetPoints().GetData()), hexa=conn,
+                           cell_data=arrays(g.GetCellData()), point_data=arrays(g.GetPointData()), field=field)
+
+
 def test_vtu_series_matches_h5(done):
+    """The VTU holds one hexahedron per node (its integration cell) with the node's values as cell data
+    (read back with VTK's own reader)."""
+    pytest.importorskip("vtkmodules")
+    from pixmuscle.report.fields import CAUCHY, DISPLACEMENT, FIBER, MAX_PRINCIPAL
+
     truth, summary, out = done
     pvd = ET.parse(out / "fields.pvd").getroot()
     sets = pvd.findall("./Collection/DataSet")
     with h5py.File(truth.path, "r") as f:
         alpha = f["steps/alpha"][()]
         X = f["nodes/X"][()]
+        h = f["grid/spacing"][()]
         assert [d.get("file") for d in sets] == [f"fields/step_{s:04d}.vtu" for s in range(alpha.size)]
         np.testing.assert_array_equal([float(d.get("timestep")) for d in sets], alpha)
         for s in (0, alpha.size - 1):
-            m = meshio.read(out / f"fields/step_{s:04d}.vtu")
+            m = read_vtu(out / f"fields/step_{s:04d}.vtu")
             n = X.shape[0]
-            np.testing.assert_array_equal(m.points, X)
-            assert m.cells[0].type == "vertex" and m.cells[0].data.shape == (n, 1)
-            pd = m.point_data
-            np.testing.assert_array_equal(pd["displacement"], f["steps/u"][s])
-            np.testing.assert_array_equal(pd["cauchy"], f["steps/cauchy"][s])
-            assert pd["cauchy"].shape == (n, 6)
-            np.testing.assert_array_equal(pd["max_principal_cauchy"], f["steps/max_principal"][s])
-            np.testing.assert_array_equal(pd["fiber_direction"], f["nodes/fiber"][()])
-            np.testing.assert_array_equal(pd["tissue"], f["nodes/tissue"][()])
-            np.testing.assert_array_equal(pd["muscle_id"], f["nodes/muscle_id"][()])
-            np.testing.assert_array_equal(pd["imat"].astype(bool), truth.imat_nodes)
+            assert m.grid.GetNumberOfCells() == n and m.grid.GetCellType(0) == 12  # VTK_HEXAHEDRON
+            corners = m.points[m.hexa]                      # (N, 8, 3)
+            np.testing.assert_allclose(corners.mean(axis=1), X, atol=1e-12)   # cell centre = node
+            np.testing.assert_allclose(np.ptp(corners, axis=1), np.broadcast_to(h, (n, 3)), atol=1e-12)
+            cd = m.cell_data
+            np.testing.assert_array_equal(cd[DISPLACEMENT], f["steps/u"][s])
+            np.testing.assert_array_equal(cd[CAUCHY], f["steps/cauchy"][s])
+            np.testing.assert_array_equal(cd[MAX_PRINCIPAL], f["steps/max_principal"][s])
+            np.testing.assert_array_equal(cd[FIBER], f["nodes/fiber"][()])
+            np.testing.assert_array_equal(cd["tissue"], f["nodes/tissue"][()])
+            np.testing.assert_array_equal(cd["muscle_id"], f["nodes/muscle_id"][()])
+            np.testing.assert_array_equal(cd["imat"].astype(bool), truth.imat_nodes)
+            assert m.point_data[DISPLACEMENT].shape == (m.points.shape[0], 3)
+        with meshio.xdmf.TimeSeriesReader(out / "fields.xdmf") as xr:  # the XDMF + HDF5 copy of the series
+            points, cells = xr.read_points_cells()
+            assert xr.num_steps == alpha.size and cells[0].type == "hexahedron"
+            t, pd, cd = xr.read_data(alpha.size - 1)
+            assert t == pytest.approx(alpha[-1])
+            np.testing.assert_array_equal(cd[DISPLACEMENT][0], f["steps/u"][alpha.size - 1])
 
 
 def test_rotate_voigt_against_scipy_rotation():
@@ -131,25 +169,27 @@ def test_rotate_voigt_against_scipy_rotation():
 def test_rotated_frame_mesh():
     from scipy.spatial.transform import Rotation
 
-    from pixmuscle.report.fields import step_mesh
-    from pixmuscle.report.inputs import StepFields
+    from pixmuscle.mechanics.results import StepFields
+    from pixmuscle.report.fields import DISPLACEMENT, FIBER, MAX_PRINCIPAL, step_mesh, voxel_hexahedra
 
     rng = np.random.default_rng(1)
     R = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix()
-    X, u, fib = rng.normal(size=(5, 3)), rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
+    ijk = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 0, 1], [2, 1, 1]])
+    origin, spacing = np.array([1.0, 2.0, 3.0]), np.array([0.2, 0.3, 0.5])
+    u, fib = rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
     c = rng.normal(size=(5, 6))
     fl = StepFields(u=u, cauchy=c, max_principal=rng.normal(size=5))
-    m = step_mesh(X, fl, fiber=fib, tissue=np.ones(5), muscle_id=np.ones(5), rotation=R)
-    np.testing.assert_allclose(m.points, (R @ X.T).T, atol=1e-14)
-    np.testing.assert_allclose(m.point_data["displacement"], (R @ u.T).T, atol=1e-14)
-    np.testing.assert_allclose(m.point_data["fiber_direction"], (R @ fib.T).T, atol=1e-14)
-    np.testing.assert_array_equal(m.point_data["max_principal_cauchy"], fl.max_principal)  # invariant
+    m = step_mesh(ijk, origin, spacing, fl, fiber=fib, tissue=np.ones(5), muscle_id=np.ones(5), rotation=R)
+    pts, _ = voxel_hexahedra(ijk, origin, spacing)
+    np.testing.assert_allclose(m.points, (R @ pts.T).T, atol=1e-14)
+    np.testing.assert_allclose(m.cell_data[DISPLACEMENT][0], (R @ u.T).T, atol=1e-14)
+    np.testing.assert_allclose(m.cell_data[FIBER][0], (R @ fib.T).T, atol=1e-14)
+    np.testing.assert_array_equal(m.cell_data[MAX_PRINCIPAL][0], fl.max_principal)  # invariant
 
 
 def test_max_principal_recomputed_when_missing(tmp_path):
     truth = write_results_fixture(tmp_path / "r.h5", n_steps=2, with_max_principal=False)
-    inp = load_results(truth.path)
-    fl = inp.fields(2)
+    fl = load_results(truth.path).step(2)
     with h5py.File(truth.path, "r") as f:
         c = f["steps/cauchy"][2]
     T = np.empty((c.shape[0], 3, 3))
@@ -310,6 +350,8 @@ def test_reads_files_written_by_the_solver_module(tmp_path):
     R = pytest.importorskip("pixmuscle.mechanics.results")
     from fixtures_results import phantom_model
 
+    from pixmuscle.io.results import save_results
+
     model, _ = phantom_model()
     n, s1 = model.n_nodes, 3
     rng = np.random.default_rng(3)
@@ -327,16 +369,18 @@ def test_reads_files_written_by_the_solver_module(tmp_path):
                     constrained=constrained, cauchy=cauchy, max_principal=R.max_principal(cauchy), newton=newton,
                     status="failed: load step 3 of 3 did not converge after 4 cutbacks", n_steps_planned=3,
                     info={"linear_solver": "direct"}, sign_convention="R . n_out")
-    path = R.save_results(tmp_path / "results.h5", res, config={"steps": 3})
+    path = save_results(tmp_path / "results.h5", res, config={"steps": 3})
     summary = make_report(path, tmp_path / "out", ReportConfig(dpi=40, slices=False))
     expect = 0.5 * (res.force("z_min") + res.force("z_max"))
     np.testing.assert_allclose(summary["curve"]["end_force_N"], expect, rtol=1e-14)
     assert summary["F_max_N"] == pytest.approx(expect.max())
     assert summary["newton"]["cutbacks"] == [0, 1, 0] and summary["newton"]["n_steps_planned"] == 3
     assert summary["failed"] and "failed: load step 3" in (tmp_path / "out" / "index.html").read_text()
-    m = meshio.read(tmp_path / "out" / "fields" / "step_0002.vtu")
-    np.testing.assert_array_equal(m.point_data["displacement"], u[2])
-    np.testing.assert_allclose(m.point_data["max_principal_cauchy"], res.max_principal[2])
+    with meshio.xdmf.TimeSeriesReader(tmp_path / "out" / "fields.xdmf") as xr:
+        xr.read_points_cells()
+        _, _, cd = xr.read_data(2)
+    np.testing.assert_array_equal(cd["displacement [cm]"][0], u[2])
+    np.testing.assert_allclose(cd["max_principal_cauchy [N/cm^2]"][0], res.max_principal[2])
 
 
 def test_force_sets_follow_constrained_components():

@@ -1,6 +1,7 @@
-"""Results of a solve and the ``results.h5`` file (schema ``pixmuscle.results`` v1).
+"""Results of a solve: the :class:`Results` container (pure data, no file I/O).
 
-Layout (docs/architecture.md)::
+The file ``results.h5`` (schema ``pixmuscle.results`` v1) is written and read by
+:mod:`pixmuscle.io.results`, the one reader of that file. Its layout (docs/architecture.md)::
 
     /nodes, /muscles, /grid, /sets   copy of the model (the report needs only this file)
     /steps/alpha            (S+1,)        activation α at the end of each step (step 0 = initial state)
@@ -17,7 +18,8 @@ Layout (docs/architecture.md)::
     /steps/max_principal    (S+1,N) N/cm²    largest principal Cauchy stress
     /newton/<column>        Newton log: step, load_factor, iteration, residual_norm (N),
                             relative_residual, energy_norm (N·cm), line_search
-    attrs: status ("complete" | "failed: ..."), sign_convention, n_steps_planned, solver_info (JSON)
+    attrs: status ("complete" | "failed: ..."), sign_convention, n_steps_planned, solver_info (JSON),
+           constraint_gap (JSON, optional), warnings (JSON list), stages (JSON, upstream stage records)
 
 When a solve fails, only the converged steps are stored (S+1 is then the number of converged
 states) and ``status`` says which step failed and why.
@@ -26,18 +28,11 @@ states) and ``status`` says which step failed and why.
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections.abc import Sequence
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from ..model.model import Model, read_model_groups, write_model_groups
-from ..store import open_stage, write_dataset, write_stage
-
-SCHEMA = "pixmuscle.results"
-VERSION = 1
+from ..model.model import Model
 
 NEWTON_COLUMNS = ("step", "load_factor", "iteration", "residual_norm", "relative_residual", "energy_norm", "line_search")
 #: outward normal of the end sets (for the axial force of a reaction)
@@ -59,8 +54,41 @@ def max_principal(voigt: np.ndarray) -> np.ndarray:
 
 
 @dataclasses.dataclass
+class StepFields:
+    """Nodal fields of one stored state.
+
+    Attributes
+    ----------
+    u : (N, 3) float64
+        Displacement at the nodes, cm.
+    cauchy : (N, 6) float64 or None
+        Cauchy stress, N/cm², Voigt order xx yy zz xy yz xz.
+    max_principal : (N,) float64 or None
+        Largest principal Cauchy stress, N/cm².
+    """
+
+    u: np.ndarray
+    cauchy: np.ndarray | None
+    max_principal: np.ndarray | None
+
+
+@dataclasses.dataclass
 class Results:
-    """Per-step results of a solve (shapes with S+1 stored states and N nodes; see module docstring)."""
+    """Per-step results of a solve (shapes with S+1 stored states and N nodes; see module docstring).
+
+    The per-step arrays ``u``, ``d``, ``cauchy`` and ``max_principal`` are numpy arrays after a
+    solve; read from a file they may be lazy (anything indexable by step with a ``shape``, see
+    :class:`pixmuscle.io.results.StepArray`), so use :meth:`step` to get one state's fields.
+    ``cauchy``, ``max_principal`` and ``d`` may be None for files that do not store them.
+
+    ``constraint_gap`` maps each constrained node set to the largest error of its constrained
+    displacement components (``{"max_cm": float, "relative": float}``, relative to the largest
+    displacement); empty when the solver did not record it. ``warnings`` are the solver's own
+    warnings (text). ``meta`` is empty after a solve; read from a file it holds the file's
+    metadata: ``path``, ``config`` (YAML text), ``provenance``, ``units``, ``stages`` (records of
+    the upstream stage files: stage, file, config, provenance, warnings, synthetic), ``synthetic``
+    (bool) and the other root attributes (``attrs``).
+    """
 
     model: Model
     alpha: np.ndarray
@@ -80,6 +108,9 @@ class Results:
     n_steps_planned: int = 0
     info: dict = dataclasses.field(default_factory=dict)
     sign_convention: str = ""
+    constraint_gap: dict = dataclasses.field(default_factory=dict)
+    warnings: list = dataclasses.field(default_factory=list)
+    meta: dict = dataclasses.field(default_factory=dict)
 
     @property
     def n_states(self) -> int:
@@ -88,7 +119,26 @@ class Results:
 
     @property
     def failed(self) -> bool:
-        return self.status.startswith("failed")
+        return self.status.lower().startswith("failed")
+
+    @property
+    def has_stress(self) -> bool:
+        return self.cauchy is not None or self.max_principal is not None
+
+    def step(self, k: int) -> StepFields:
+        """Displacement and stresses of stored state ``k`` as numpy arrays (the largest principal
+        stress is computed from ``cauchy`` when it is not stored)."""
+        u = np.asarray(self.u[k], float)
+        cauchy = None if self.cauchy is None else np.asarray(self.cauchy[k], float)
+        mp = None if self.max_principal is None else np.asarray(self.max_principal[k], float)
+        if mp is None and cauchy is not None:
+            mp = max_principal(cauchy)
+        return StepFields(u=u, cauchy=cauchy, max_principal=mp)
+
+    def constrained_text(self) -> dict:
+        """Constrained components of each set as text, e.g. ``{"z_min": "xyz", "bone_surface": "xy"}``."""
+        return {k: "".join(a for a, m in zip("xyz", np.asarray(v, bool), strict=True) if m)
+                for k, v in self.constrained.items()}
 
     def force(self, name: str, normal=None) -> np.ndarray:
         """Axial force of a reaction, R · n_out (N, (S+1,)): positive = the body pulls on the support.
@@ -103,7 +153,8 @@ class Results:
     @classmethod
     def from_steps(cls, model: Model, steps: list[dict], *, failed_rows: Sequence = (), status: str = "complete",
                    n_steps: int = 0, constrained: dict | None = None, info: dict | None = None,
-                   sign_convention: str = "") -> Results:
+                   sign_convention: str = "", constraint_gap: dict | None = None,
+                   warnings: Sequence[str] = ()) -> Results:
         """Collect the per-step dictionaries of :func:`pixmuscle.mechanics.solve.solve`."""
         n = model.n_nodes
         s1 = len(steps)
@@ -126,77 +177,5 @@ class Results:
             cauchy=np.array([s["cauchy"] for s in steps], float).reshape(s1, n, 6),
             max_principal=np.array([s["max_principal"] for s in steps], float).reshape(s1, n),
             newton=newton, status=status, n_steps_planned=int(n_steps), info=dict(info or {}),
-            sign_convention=sign_convention,
-        )
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    return obj
-
-
-def write_results_groups(f, res: Results) -> None:
-    """Write the groups of a results file into an open HDF5 file."""
-    write_model_groups(f, res.model)
-    st = f.create_group("steps")
-    write_dataset(st, "alpha", res.alpha, units="1")
-    write_dataset(st, "load_factor", res.load_factor, units="1")
-    write_dataset(st, "converged", res.converged)
-    write_dataset(st, "iterations", res.iterations)
-    write_dataset(st, "cutbacks", res.cutbacks)
-    write_dataset(st, "u", res.u, units="cm", description="u(X_I) = sum_J Psi_J(X_I) d_J at the nodes")
-    write_dataset(st, "d", res.d, units="cm", description="RK coefficients d_J")
-    write_dataset(st, "cauchy", res.cauchy, units="N/cm^2", order="xx yy zz xy yz xz")
-    write_dataset(st, "max_principal", res.max_principal, units="N/cm^2")
-    rg = st.create_group("reaction")
-    for k, v in res.reaction.items():
-        write_dataset(rg, k, v, units="N", description="force the support exerts on the body")
-    pg = st.create_group("prescribed")
-    for k, v in res.prescribed.items():
-        comp = "".join(a for a, m in zip("xyz", res.constrained.get(k, np.zeros(3, bool)), strict=True) if m)
-        write_dataset(pg, k, v, units="cm", constrained=comp)
-    ng = f.create_group("newton")
-    units = {"residual_norm": "N", "energy_norm": "N*cm", "load_factor": "1", "relative_residual": "1", "line_search": "1"}
-    for c in NEWTON_COLUMNS:
-        write_dataset(ng, c, res.newton[c], units=units.get(c))
-
-
-def save_results(path: str | Path, res: Results, *, config: Any = None, inputs: Sequence[str | Path] = ()) -> Path:
-    """Write ``results.h5`` atomically (schema ``pixmuscle.results`` v1)."""
-    attrs = {"status": res.status, "sign_convention": res.sign_convention, "n_steps_planned": int(res.n_steps_planned),
-             "solver_info": json.dumps(_jsonable(res.info))}
-    return write_stage(path, schema=SCHEMA, version=VERSION, write=lambda f: write_results_groups(f, res),
-                       config=config, inputs=inputs, attrs=attrs)
-
-
-def load_results(path: str | Path) -> Results:
-    """Read a results file written by :func:`save_results` (schema checked)."""
-    with open_stage(path, schema=SCHEMA, version=VERSION) as f:
-        model = read_model_groups(f)
-        st = f["steps"]
-        pres = st["prescribed"] if "prescribed" in st else {}
-        constrained = {}
-        for k in pres:
-            c = pres[k].attrs.get("constrained", "")
-            c = c.decode() if isinstance(c, bytes) else str(c)
-            constrained[k] = np.array([a in c for a in "xyz"])
-        a = f.attrs
-        status = a.get("status", "")
-        return Results(
-            model=model, alpha=st["alpha"][()], load_factor=st["load_factor"][()], converged=st["converged"][()],
-            iterations=st["iterations"][()],
-            cutbacks=st["cutbacks"][()] if "cutbacks" in st else np.zeros(st["alpha"].shape[0], np.int64),
-            u=st["u"][()], d=st["d"][()], reaction={k: v[()] for k, v in st["reaction"].items()},
-            prescribed={k: v[()] for k, v in pres.items()}, constrained=constrained, cauchy=st["cauchy"][()],
-            max_principal=st["max_principal"][()], newton={k: v[()] for k, v in f["newton"].items()},
-            status=status.decode() if isinstance(status, bytes) else str(status),
-            n_steps_planned=int(a.get("n_steps_planned", 0)), info=json.loads(a.get("solver_info", "{}")),
-            sign_convention=str(a.get("sign_convention", "")),
+            sign_convention=sign_convention, constraint_gap=dict(constraint_gap or {}), warnings=list(warnings),
         )

@@ -116,10 +116,11 @@ def read_model_groups(f: Any) -> Model:
     )
 
 
-def save_model(path: str | Path, model: Model, *, config: Any = None, inputs: Sequence[str | Path] = ()) -> Path:
-    """Write ``model.h5`` atomically (schema ``pixmuscle.model`` v1)."""
+def save_model(path: str | Path, model: Model, *, config: Any = None, inputs: Sequence[str | Path] = (),
+               attrs: dict | None = None) -> Path:
+    """Write ``model.h5`` atomically (schema ``pixmuscle.model`` v1); ``attrs``: more root attributes."""
     return write_stage(path, schema=SCHEMA, version=VERSION, write=lambda f: write_model_groups(f, model),
-                       config=config, inputs=inputs)
+                       config=config, inputs=inputs, attrs=attrs)
 
 
 def load_model(path: str | Path) -> Model:

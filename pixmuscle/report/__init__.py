@@ -1,12 +1,13 @@
 """Report layer: force–activation curves, tissue tables, ParaView fields, slice figures, HTML pages.
 
-Reading ``results.h5`` happens only in :func:`pixmuscle.report.inputs.load_results`; the rest works
-on arrays and writes files. The stage entry point is :func:`pixmuscle.stages.report.run_report`.
+``results.h5`` is read by :func:`pixmuscle.io.results.load_results` (the one reader, at the edge)
+into a :class:`~pixmuscle.mechanics.results.Results`; the summary is
+:func:`pixmuscle.report.summary.compute_summary`, the figures are registered in
+:mod:`pixmuscle.report.figures`. The stage entry point is :func:`pixmuscle.stages.report.run_report`.
 """
 
 from .config import ReportConfig
 from .curves import axial_forces, end_normal, plot_force_activation, select_force_sets
-from .inputs import ReportInput, StepFields, load_results
 from .tables import subcutaneous_fat, tissue_classes, tissue_table
 
 
@@ -18,7 +19,7 @@ def cohort_summary(*args, **kwargs):
 
 
 __all__ = [
-    "ReportConfig", "ReportInput", "StepFields", "load_results", "axial_forces", "end_normal",
+    "ReportConfig", "axial_forces", "end_normal",
     "plot_force_activation", "select_force_sets", "subcutaneous_fat", "tissue_classes", "tissue_table",
     "cohort_summary",
 ]

@@ -17,7 +17,9 @@ class ReportConfig:
     the flags below switch the heavier outputs.
     """
 
-    vtu: bool = field(default=True, metadata={"doc": "write the ParaView VTU time series (fields/*.vtu + fields.pvd)"})
+    vtu: bool = field(default=True, metadata={"doc": "write the ParaView VTU time series (fields/*.vtu + fields.pvd): the model's voxel cells with cell and point data"})
+    xdmf: bool = field(default=True, metadata={"doc": "also write the series as XDMF + HDF5 (fields.xdmf, fields.h5) for large models"})
+    view3d: bool = field(default=True, metadata={"doc": "3-D picture of the model and the fields on the deformed body (VTK off-screen, else matplotlib)"})
     slices: bool = field(default=True, metadata={"doc": "write the slice figures of |u| and max principal stress"})
     html: bool = field(default=True, metadata={"doc": "write the self-contained index.html"})
     every_nth_step: int = field(default=1, metadata={"range": (1, None), "doc": "write every n-th converged step to VTU (the last converged step is always written)"})

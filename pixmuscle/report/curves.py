@@ -200,10 +200,10 @@ def newton_per_step(newton: Mapping[str, np.ndarray], n_steps: int) -> dict[str,
 
     Returns
     -------
-    dict with ``final_residual`` and ``final_energy`` (S+1,) float64, NaN where the step has no
-    Newton record (e.g. step 0).
+    dict with ``final_residual``, ``final_relative_residual`` and ``final_energy`` (S+1,) float64,
+    NaN where the step has no Newton record (e.g. step 0) or the log lacks the column.
     """
-    out = {"final_residual": np.full(n_steps, np.nan), "final_energy": np.full(n_steps, np.nan)}
+    out = {k: np.full(n_steps, np.nan) for k in ("final_residual", "final_relative_residual", "final_energy")}
     if not newton or "step" not in newton:
         return out
     step = np.asarray(newton["step"], np.int64)
@@ -212,7 +212,8 @@ def newton_per_step(newton: Mapping[str, np.ndarray], n_steps: int) -> dict[str,
     step_o = step[order]
     last = order[np.r_[step_o[1:] != step_o[:-1], True]] if step.size else order
     valid = (step[last] >= 0) & (step[last] < n_steps)
-    for key, col in (("final_residual", "residual_norm"), ("final_energy", "energy_norm")):
+    for key, col in (("final_residual", "residual_norm"), ("final_relative_residual", "relative_residual"),
+                     ("final_energy", "energy_norm")):
         if col in newton:
             out[key][step[last][valid]] = np.asarray(newton[col], float)[last][valid]
     return out

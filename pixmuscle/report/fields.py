@@ -1,13 +1,21 @@
-"""Nodal fields for ParaView: one VTU file per load step plus a PVD collection (via meshio).
+"""Fields for ParaView: the model as voxel cells, one VTU per load step, a PVD collection, and the
+same series as XDMF + HDF5 for large models (both through meshio).
 
-Nodes are written as a point cloud (one VTK ``vertex`` cell per node) on the **reference**
-coordinates; use ParaView's "Warp By Vector" with ``displacement`` to see the deformed shape.
-Point data:
+Every node of the pixel-point model owns an axis-aligned integration cell of size ``grid/spacing``
+centred on it (docs/architecture.md, "Model frame"); the files hold exactly these cells as VTK
+hexahedra, so ParaView's Slice, Clip, Threshold and Contour return pieces of the body at any
+plane. Nodal values are **cell data** (one value per node = per cell); displacement and the
+stresses are also given as **point data** at the cell corners (mean of the body cells sharing the
+corner) for *Warp By Vector* and smooth colouring. Coordinates are the **reference**
+configuration, cm.
 
-``displacement`` (N, 3) cm; ``fiber_direction`` (N, 3) unit; ``tissue`` (N,) code 1 muscle,
-2 connective tissue, 3 fat; ``muscle_id`` (N,) 0 or 1..M; ``imat`` (N,) 1 where the fat node is
-counted as IMAT by the tissue table; ``max_principal_cauchy`` (N,) N/cm²; ``cauchy`` (N, 6)
-N/cm² in Voigt order xx yy zz xy yz xz (ParaView's symmetric-tensor order).
+Arrays (units in the names and in the field-data array ``units``):
+
+``displacement [cm]`` (3), ``fiber_direction [1]`` (3, cells), ``tissue`` (cells: 1 muscle,
+2 connective tissue, 3 fat; names in field data ``tissue_names``), ``muscle_id`` (cells: 0 or 1..M;
+names in ``muscle_names``, index = id), ``imat`` (cells: 1 where the fat node counts as IMAT),
+``max_principal_cauchy [N/cm^2]``, ``cauchy [N/cm^2]`` (6 components XX YY ZZ XY YZ XZ, ParaView's
+symmetric-tensor order; component names stored).
 
 Frames: ``"model"`` writes the grid-aligned model frame (cm). ``"rotated"`` applies
 ``grid/rotation`` R about the frame origin: points and vectors become ``R x``, stresses ``R σ Rᵀ``.
@@ -15,13 +23,32 @@ Frames: ``"model"`` writes the grid-aligned model frame (cm). ``"rotated"`` appl
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from .inputs import StepFields, voigt_to_tensor
+from ..mechanics.results import StepFields
+from ..model.tissues import TISSUE_NAMES
+
+#: corner offsets of a voxel in VTK_HEXAHEDRON order
+HEX_CORNERS = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]])
+CAUCHY_COMPONENTS = ("XX", "YY", "ZZ", "XY", "YZ", "XZ")
+DISPLACEMENT = "displacement [cm]"
+FIBER = "fiber_direction [1]"
+CAUCHY = "cauchy [N/cm^2]"
+MAX_PRINCIPAL = "max_principal_cauchy [N/cm^2]"
+UNITS = (f"{DISPLACEMENT}: cm", f"{CAUCHY}: N/cm^2 (Voigt XX YY ZZ XY YZ XZ)", f"{MAX_PRINCIPAL}: N/cm^2",
+         f"{FIBER}: unit vector", "tissue: code, see tissue_names", "muscle_id: index into muscle_names",
+         "imat: 1 = fat counted as IMAT", "coordinates: cm, reference configuration", "time: activation alpha")
+
+
+def voigt_to_tensor(v: np.ndarray) -> np.ndarray:
+    """(N, 6) Voigt (xx yy zz xy yz xz) → (N, 3, 3) symmetric tensors."""
+    xx, yy, zz, xy, yz, xz = np.moveaxis(np.asarray(v, float), -1, 0)
+    return np.stack([np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1), np.stack([xz, yz, zz], -1)], -2)
 
 
 def rotate_voigt(v: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -41,14 +68,65 @@ def rotate_voigt(v: np.ndarray, R: np.ndarray) -> np.ndarray:
     return np.stack([t[:, 0, 0], t[:, 1, 1], t[:, 2, 2], t[:, 0, 1], t[:, 1, 2], t[:, 0, 2]], axis=-1)
 
 
-def step_mesh(X: np.ndarray, fields: StepFields, *, fiber: np.ndarray, tissue: np.ndarray, muscle_id: np.ndarray,
-              imat: np.ndarray | None = None, rotation: np.ndarray | None = None):
-    """A meshio point-cloud mesh of one step.
+def voxel_hexahedra(ijk: np.ndarray, origin, spacing) -> tuple[np.ndarray, np.ndarray]:
+    """The integration cells of the nodes as hexahedra sharing their corners.
 
     Parameters
     ----------
-    X : (N, 3) float64
-        Reference node coordinates, cm.
+    ijk : (N, 3) int
+        Voxel index of each node.
+    origin, spacing : (3,) float, cm
+
+    Returns
+    -------
+    points : (P, 3) float64, cm
+        Cell corners, ``origin + (corner - 1/2) * spacing``.
+    hexa : (N, 8) int64
+        Corner indices of each node's cell, VTK_HEXAHEDRON order; cell n belongs to node n.
+    """
+    ijk = np.asarray(ijk, np.int64)
+    lo = ijk.min(axis=0) if ijk.size else np.zeros(3, np.int64)
+    corner = (ijk - lo)[:, None, :] + HEX_CORNERS[None]          # (N, 8, 3)
+    dims = corner.reshape(-1, 3).max(axis=0) + 1 if ijk.size else np.ones(3, np.int64)
+    flat = np.ravel_multi_index(tuple(corner.reshape(-1, 3).T), tuple(dims))
+    uniq, inv = np.unique(flat, return_inverse=True)
+    pts = np.stack(np.unravel_index(uniq, tuple(dims)), axis=-1) + lo
+    points = np.asarray(origin, float) + (pts - 0.5) * np.asarray(spacing, float)
+    return points, inv.reshape(-1, 8).astype(np.int64)
+
+
+def cells_to_points(hexa: np.ndarray, values: np.ndarray, n_points: int) -> np.ndarray:
+    """Mean of the cell values around each corner point.
+
+    Parameters
+    ----------
+    hexa : (N, 8) int
+    values : (N,) or (N, c) float
+    n_points : int
+
+    Returns
+    -------
+    (P,) or (P, c) float64
+    """
+    v = np.asarray(values, float)
+    flat = v.reshape(v.shape[0], -1)
+    idx = hexa.ravel()
+    count = np.bincount(idx, minlength=n_points).astype(float)
+    out = np.stack([np.bincount(idx, weights=np.repeat(flat[:, c], 8), minlength=n_points) for c in range(flat.shape[1])],
+                   axis=-1)  # loop over components (≤ 6)
+    out /= np.maximum(count, 1.0)[:, None]
+    return out.reshape((n_points, *v.shape[1:]))
+
+
+def step_mesh(ijk: np.ndarray, origin, spacing, fields: StepFields, *, fiber: np.ndarray, tissue: np.ndarray,
+              muscle_id: np.ndarray, imat: np.ndarray | None = None, rotation: np.ndarray | None = None,
+              cells: tuple | None = None):
+    """A meshio mesh of one step: the model's voxel cells with cell and point data.
+
+    Parameters
+    ----------
+    ijk : (N, 3) int; origin, spacing : (3,) cm
+        The model grid.
     fields : StepFields
         Displacement (cm) and stresses (N/cm²) of the step.
     fiber : (N, 3); tissue, muscle_id : (N,)
@@ -56,29 +134,106 @@ def step_mesh(X: np.ndarray, fields: StepFields, *, fiber: np.ndarray, tissue: n
     imat : (N,) bool, optional
     rotation : (3, 3), optional
         Applied to points, vectors and tensors when given.
+    cells : (points, hexa), optional
+        The output of :func:`voxel_hexahedra` (computed when not given).
     """
     import meshio
 
-    n = X.shape[0]
-    u, fib, cau = fields.u, np.asarray(fiber, float), fields.cauchy
+    points, hexa = cells if cells is not None else voxel_hexahedra(ijk, origin, spacing)
+    u, fib, cau = np.asarray(fields.u, float), np.asarray(fiber, float), fields.cauchy
     if rotation is not None:
         R = np.asarray(rotation, float)
-        X, u, fib = X @ R.T, u @ R.T, fib @ R.T
+        points, u, fib = points @ R.T, u @ R.T, fib @ R.T
         cau = rotate_voigt(cau, R) if cau is not None else None
-    pd = {
-        "displacement": np.ascontiguousarray(u, np.float64),
-        "fiber_direction": np.ascontiguousarray(fib, np.float64),
-        "tissue": np.asarray(tissue, np.int32),
-        "muscle_id": np.asarray(muscle_id, np.int32),
-    }
+    n_pts = points.shape[0]
+    cd = {DISPLACEMENT: u, FIBER: fib, "tissue": np.asarray(tissue, np.int32), "muscle_id": np.asarray(muscle_id, np.int32)}
+    pd = {DISPLACEMENT: cells_to_points(hexa, u, n_pts)}
     if imat is not None:
-        pd["imat"] = np.asarray(imat, np.int32)
+        cd["imat"] = np.asarray(imat, np.int32)
     if fields.max_principal is not None:
-        pd["max_principal_cauchy"] = np.asarray(fields.max_principal, np.float64)
+        cd[MAX_PRINCIPAL] = np.asarray(fields.max_principal, np.float64)
+        pd[MAX_PRINCIPAL] = cells_to_points(hexa, cd[MAX_PRINCIPAL], n_pts)
     if cau is not None:
-        pd["cauchy"] = np.ascontiguousarray(cau, np.float64)
-    cells = [("vertex", np.arange(n, dtype=np.int64)[:, None])]
-    return meshio.Mesh(np.ascontiguousarray(X, np.float64), cells, point_data=pd)
+        cd[CAUCHY] = np.asarray(cau, np.float64)
+        pd[CAUCHY] = cells_to_points(hexa, cd[CAUCHY], n_pts)
+    return meshio.Mesh(np.ascontiguousarray(points, np.float64), [("hexahedron", hexa)],
+                       point_data={k: np.ascontiguousarray(v) for k, v in pd.items()},
+                       cell_data={k: [np.ascontiguousarray(v)] for k, v in cd.items()})
+
+
+def _string_array(name: str, values: Sequence[str]) -> str:
+    codes = " ".join(" ".join(str(b) for b in s.encode("utf-8")) + " 0" for s in values)
+    return f'      <Array type="String" Name={quoteattr(name)} NumberOfTuples="{len(values)}" format="ascii">{codes}</Array>\n'
+
+
+def field_data_xml(muscle_names: Sequence[str]) -> str:
+    """The ``<FieldData>`` block: ``units``, ``tissue_names`` (index = code), ``muscle_names`` (index = id)."""
+    tissues = ["background", *[TISSUE_NAMES.get(c, str(c)) for c in (1, 2, 3)]]
+    return ("    <FieldData>\n" + _string_array("units", UNITS) + _string_array("tissue_names", tissues)
+            + _string_array("muscle_names", ["(not muscle)", *muscle_names]) + "    </FieldData>\n")
+
+
+def annotate_vtu(path: str | Path, muscle_names: Sequence[str]) -> Path:
+    """Add the field data (units and names) and the Cauchy component names to a VTU written by meshio."""
+    path = Path(path)
+    text = path.read_text(encoding="utf-8")
+    text = text.replace("<UnstructuredGrid>", "<UnstructuredGrid>\n" + field_data_xml(muscle_names).rstrip("\n"), 1)
+    names = " ".join(f'ComponentName{i}="{c}"' for i, c in enumerate(CAUCHY_COMPONENTS))
+    text = re.sub(r'(<DataArray[^>]*Name="' + re.escape(CAUCHY) + r'")', r"\1 " + names, text)
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+class XdmfSeries:
+    """A time series of one mesh as XDMF 3 + HDF5 (``fields.xdmf`` beside ``fields.h5``).
+
+    Written here rather than with ``meshio.xdmf.TimeSeriesWriter``, which puts the HDF5 file in
+    the current working directory instead of beside the XDMF file. meshio's
+    ``TimeSeriesReader`` and ParaView (XDMF3 reader) read it.
+    """
+
+    def __init__(self, path: str | Path, points: np.ndarray, hexa: np.ndarray):
+        import h5py
+
+        self.path = Path(path)
+        self.h5_path = self.path.with_suffix(".h5")
+        self._h5 = h5py.File(self.h5_path, "w")
+        self._h5["points"] = np.asarray(points, float)
+        self._h5["hexahedra"] = np.asarray(hexa, np.int64)
+        self._n_points, self._n_cells = points.shape[0], hexa.shape[0]
+        self._steps: list[str] = []
+
+    def _item(self, ds: str, shape: tuple, dtype) -> str:
+        kind, prec = ("Int", 8) if np.dtype(dtype).kind in "iu" else ("Float", 8)
+        dims = " ".join(map(str, shape))
+        return (f'<DataItem DataType="{kind}" Precision="{prec}" Dimensions="{dims}" Format="HDF">'
+                f"{self.h5_path.name}:/{ds}</DataItem>")
+
+    def write(self, t: float, point_data: dict, cell_data: dict) -> None:
+        """Append one time step (``cell_data`` values as meshio gives them: lists of one array)."""
+        k = len(self._steps)
+        attrs = []
+        for centre, data in (("Node", point_data), ("Cell", cell_data)):
+            for name, v in data.items():
+                v = np.asarray(v[0] if isinstance(v, list) else v)
+                ds = f"step_{k:04d}/{centre.lower()}/{name}"
+                self._h5[ds] = v
+                typ = {1: "Scalar", 3: "Vector", 6: "Tensor6"}.get(1 if v.ndim == 1 else v.shape[1], "Matrix")
+                attrs.append(f'<Attribute Name={quoteattr(name)} AttributeType="{typ}" Center="{centre}">'
+                             f"{self._item(ds, v.shape, v.dtype)}</Attribute>")
+        topo = (f'<Topology TopologyType="Hexahedron" NumberOfElements="{self._n_cells}">'
+                f'{self._item("hexahedra", (self._n_cells, 8), np.int64)}</Topology>')
+        geo = f'<Geometry GeometryType="XYZ">{self._item("points", (self._n_points, 3), float)}</Geometry>'
+        self._steps.append(f'<Grid Name="step {k}" GridType="Uniform"><Time Value="{float(t)!r}"/>{topo}{geo}'
+                           + "".join(attrs) + "</Grid>")
+
+    def close(self) -> Path:
+        self._h5.close()
+        body = "\n".join(f"      {g}" for g in self._steps)
+        self.path.write_text('<?xml version="1.0"?>\n<Xdmf Version="3.0">\n  <Domain>\n'
+                             '    <Grid Name="fields" GridType="Collection" CollectionType="Temporal">\n'
+                             f"{body}\n    </Grid>\n  </Domain>\n</Xdmf>\n")
+        return self.path
 
 
 def write_pvd(path: str | Path, files: Sequence[str], times: Sequence[float]) -> Path:
@@ -109,26 +264,40 @@ def vtu_steps(converged: np.ndarray, every_nth: int) -> np.ndarray:
 
 
 def write_vtu_series(outdir: str | Path, steps: Sequence[int], times: Sequence[float],
-                     load_fields: Callable[[int], StepFields], *, X, fiber, tissue, muscle_id, imat=None,
-                     rotation=None, compression: str | None = "zlib", progress=None) -> tuple[Path, list[Path]]:
-    """Write ``fields/step_XXXX.vtu`` for each step and ``fields.pvd`` listing them at ``times``.
+                     load_fields: Callable[[int], StepFields], *, ijk, origin, spacing, fiber, tissue, muscle_id,
+                     muscle_names: Sequence[str] = (), imat=None, rotation=None, compression: str | None = "zlib",
+                     xdmf: bool = False, progress=None) -> dict:
+    """Write ``fields/step_XXXX.vtu`` for each step, ``fields.pvd`` listing them at ``times`` and,
+    with ``xdmf``, the same series as ``fields.xdmf`` + ``fields.h5``.
 
     Returns
     -------
-    pvd : Path
-    vtus : list of Path
+    dict
+        ``pvd`` (Path), ``vtu`` (list of Path), ``xdmf`` (Path or None).
     """
     import meshio
 
     outdir = Path(outdir)
     (outdir / "fields").mkdir(parents=True, exist_ok=True)
+    cells = voxel_hexahedra(ijk, origin, spacing)
     rel, paths = [], []
-    for s in steps:  # loop over load steps
-        name = f"fields/step_{int(s):04d}.vtu"
-        mesh = step_mesh(X, load_fields(int(s)), fiber=fiber, tissue=tissue, muscle_id=muscle_id, imat=imat, rotation=rotation)
-        meshio.write(outdir / name, mesh, file_format="vtu", compression=None if compression in (None, "none") else compression)
-        rel.append(name)
-        paths.append(outdir / name)
-        if progress is not None:
-            progress.advance()
-    return write_pvd(outdir / "fields.pvd", rel, times), paths
+    writer = None
+    try:
+        for s, t in zip(steps, times, strict=True):  # loop over load steps
+            name = f"fields/step_{int(s):04d}.vtu"
+            mesh = step_mesh(ijk, origin, spacing, load_fields(int(s)), fiber=fiber, tissue=tissue, muscle_id=muscle_id,
+                             imat=imat, rotation=rotation, cells=cells)
+            meshio.write(outdir / name, mesh, file_format="vtu",
+                         compression=None if compression in (None, "none") else compression)
+            annotate_vtu(outdir / name, muscle_names)
+            if xdmf:
+                if writer is None:
+                    writer = XdmfSeries(outdir / "fields.xdmf", mesh.points, mesh.cells[0].data)
+                writer.write(float(t), mesh.point_data, mesh.cell_data)
+            rel.append(name)
+            paths.append(outdir / name)
+            if progress is not None:
+                progress.advance()
+    finally:
+        xdmf_path = writer.close() if writer is not None else None
+    return {"pvd": write_pvd(outdir / "fields.pvd", rel, times), "vtu": paths, "xdmf": xdmf_path}

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..io.lineage import capture_warnings, stage_attrs
 from ..model.build import model_from_labels
 from ..model.config import BuildModelConfig
 from ..model.model import save_model
@@ -62,7 +63,8 @@ def _same_grid(name: str, path: Path, shape, affine, ref_path: Path, ref_shape, 
             "resample it onto the label grid first")
 
 
-def run_build_model(cfg: BuildModelConfig, out_path: str | Path, progress: Any = None) -> Path:
+def run_build_model(cfg: BuildModelConfig, out_path: str | Path, progress: Any = None, *,
+                    synthetic: bool = False) -> Path:
     """Build ``model.h5`` from the inputs of ``cfg``.
 
     Parameters
@@ -73,17 +75,33 @@ def run_build_model(cfg: BuildModelConfig, out_path: str | Path, progress: Any =
         Destination ``model.h5``.
     progress : object with ``.log(msg)``, optional
         Progress reporter (:func:`pixmuscle.progress.progress`); messages also go to logging.
+    synthetic : bool
+        The inputs are synthetic phantoms (also detected from the inputs, see
+        :func:`pixmuscle.io.lineage.stage_attrs`).
 
     Returns
     -------
     pathlib.Path
         ``out_path``.
     """
+    with capture_warnings() as warnings:
+        model, inputs = _build(cfg, progress)
+    _say(progress, f"writing {out_path} ({model.n_nodes} nodes)")
+    return save_model(out_path, model, config=cfg, inputs=inputs,
+                      attrs=stage_attrs("build-model", inputs, warnings, synthetic=synthetic))
+
+
+def _say(progress: Any, msg: str) -> None:
+    if progress is not None and hasattr(progress, "log"):
+        progress.log(msg)
+    else:
+        _LOG.info(msg)
+
+
+def _build(cfg: BuildModelConfig, progress: Any):
+    """The model and the list of input files read."""
     def say(msg: str) -> None:
-        if progress is not None and hasattr(progress, "log"):
-            progress.log(msg)
-        else:
-            _LOG.info(msg)
+        _say(progress, msg)
 
     if cfg.labels is not None or cfg.fibers is not None or cfg.masks:
         from ..imaging.nifti import load_volume
@@ -124,5 +142,4 @@ def run_build_model(cfg: BuildModelConfig, out_path: str | Path, progress: Any =
         labels, affine, tissue_map=cfg.tissue_map, fibers=fibers, muscle_fibers=cfg.muscle_fibers,
         fiber_fallback=cfg.fiber_fallback, masks=masks, muscle_ids=muscle_ids, muscle_names=names,
     )
-    say(f"writing {out_path} ({model.n_nodes} nodes)")
-    return save_model(out_path, model, config=cfg, inputs=inputs)
+    return model, inputs

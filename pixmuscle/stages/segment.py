@@ -27,6 +27,7 @@ from pixmuscle.imaging.dti import (
 )
 from pixmuscle.imaging.nifti import load_volume, save_volume
 from pixmuscle.imaging.resample import resample_labels
+from pixmuscle.io.lineage import capture_warnings, stage_attrs
 from pixmuscle.segmentation.config import SegmentConfig
 from pixmuscle.segmentation.pipeline import SegmentationResult, segment_volume
 from pixmuscle.store import write_dataset, write_stage
@@ -70,7 +71,7 @@ def _dti_on_grid(cfg, shape, affine, qc_dir=None):
                      "segment.dti_tensor or segment.dti_v1")
 
 
-def run_segment(cfg, out_path, progress=None):
+def run_segment(cfg, out_path, progress=None, *, synthetic=False):
     """Run the segment stage.
 
     Parameters
@@ -82,6 +83,8 @@ def run_segment(cfg, out_path, progress=None):
         The HDF5 file to write (the NIfTI and PNG outputs go next to it).
     progress : object with ``advance(n=1, **fields)`` and ``log(msg)``, optional
         If None, a :func:`pixmuscle.progress.progress` bar is used.
+    synthetic : bool
+        The inputs are synthetic phantoms (also detected from a phantom's ``*_truth.json``).
 
     Returns
     -------
@@ -93,9 +96,25 @@ def run_segment(cfg, out_path, progress=None):
         raise InputError("segment.mri: required key is missing (anatomical MRI, NIfTI)")
     out_path = Path(out_path)
     stem = out_path.name[:-len(out_path.suffix)] if out_path.suffix else out_path.name
+    with capture_warnings() as warnings:
+        mri, res, inputs = _segment(cfg, out_path.with_name(f"{stem}_qc"), progress)
+    affine = mri.affine
+    write_segmentation(out_path, res, affine, config=cfg, inputs=inputs,
+                       attrs=stage_attrs("segment", inputs, warnings, synthetic=synthetic))
+    save_volume(out_path.with_name(f"{stem}_labels.nii.gz"), res.labels, affine, kind="labels")
+    save_volume(out_path.with_name(f"{stem}_muscles.nii.gz"), res.muscle_id, affine,
+                kind="labels")
+    save_volume(out_path.with_name(f"{stem}_fibers.nii.gz"), res.fiber, affine, kind="vectors")
+    if cfg.qc_png:
+        write_qc_pngs(out_path.with_name(f"{stem}_qc"), mri.data, res)
+    return res
+
+
+def _segment(cfg, qc_dir, progress):
+    """Read the inputs and segment: (MRI volume, SegmentationResult, input paths)."""
     mri = load_volume(cfg.mri, kind="image")
     shape, affine = mri.data.shape, mri.affine
-    d_grid, covered = _dti_on_grid(cfg, shape, affine, out_path.with_name(f"{stem}_qc"))
+    d_grid, covered = _dti_on_grid(cfg, shape, affine, qc_dir)
     imct = None if cfg.imct_mask is None else _mask_on_grid(cfg.imct_mask, shape, affine,
                                                            "segment.imct_mask")
     imat = None if cfg.imat_mask is None else _mask_on_grid(cfg.imat_mask, shape, affine,
@@ -111,17 +130,10 @@ def run_segment(cfg, out_path, progress=None):
     else:
         res = segment_volume(mri.data, affine, d_grid, covered, imct, imat, cfg,
                              progress=progress)
-    write_segmentation(out_path, res, affine, config=cfg, inputs=inputs)
-    save_volume(out_path.with_name(f"{stem}_labels.nii.gz"), res.labels, affine, kind="labels")
-    save_volume(out_path.with_name(f"{stem}_muscles.nii.gz"), res.muscle_id, affine,
-                kind="labels")
-    save_volume(out_path.with_name(f"{stem}_fibers.nii.gz"), res.fiber, affine, kind="vectors")
-    if cfg.qc_png:
-        write_qc_pngs(out_path.with_name(f"{stem}_qc"), mri.data, res)
-    return res
+    return mri, res, inputs
 
 
-def write_segmentation(path, res: SegmentationResult, affine, *, config=None, inputs=()):
+def write_segmentation(path, res: SegmentationResult, affine, *, config=None, inputs=(), attrs=None):
     """Write a :class:`SegmentationResult` as ``pixmuscle.segmentation`` v1 (atomic).
 
     Layout: ``/labels`` (I,J,K) int16, ``/muscle_id`` (I,J,K) int16, ``/muscle_names`` (M,) str,
@@ -151,7 +163,7 @@ def write_segmentation(path, res: SegmentationResult, affine, *, config=None, in
                 write_dataset(qc, key, np.asarray(val))
 
     return write_stage(path, schema=SCHEMA, version=VERSION, write=write, config=config,
-                       inputs=inputs, units={"length": "cm"})
+                       inputs=inputs, units={"length": "cm"}, attrs=attrs)
 
 
 def write_qc_pngs(folder, mri, res: SegmentationResult):

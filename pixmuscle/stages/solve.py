@@ -11,8 +11,9 @@ from ..config import parse_section
 from ..errors import InputError, SolverError
 from ..imaging.nifti import load_volume
 from ..mechanics.activation import ActivationRamp, activation_ramp, per_muscle_summary
+from ..io.lineage import capture_warnings, stage_attrs
+from ..io.results import save_results
 from ..mechanics.config import SolveConfig
-from ..mechanics.results import save_results
 from ..mechanics.solve import solve
 from ..model.model import load_model
 from ..model.tissues import MUSCLE
@@ -50,7 +51,8 @@ def _describe(cfg: SolveConfig, ramp: ActivationRamp | None, model) -> str:
     return ", ".join(f"{k} {a:.3g} → {b:.3g}" for k, (a, b) in per.items()) or "none (no muscle nodes)"
 
 
-def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_path: str | Path, progress: Any = None) -> Path:
+def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_path: str | Path, progress: Any = None, *,
+              synthetic: bool = False) -> Path:
     """Solve a model file and write the results file.
 
     Parameters
@@ -64,6 +66,8 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
     progress : object with ``advance(n=1, **fields)``, None or False
         Progress sink; None (default): a progress bar "load step k/m" showing α and the Newton
         residual; False: no progress display.
+    synthetic : bool
+        The inputs are synthetic phantoms (also taken from the model file's ``synthetic``).
 
     Returns
     -------
@@ -82,25 +86,28 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
         raise InputError("solve: the configuration has no `solve` section")
     if not isinstance(cfg, SolveConfig):
         cfg = parse_section(SolveConfig, cfg, "solve")
-    model = load_model(model_path)
-    ramp = model_activation(model, cfg)
-    _LOG.info("solve: %d nodes, %d load steps, activation %s", model.n_nodes, cfg.steps, _describe(cfg, ramp, model))
-    inputs = [Path(model_path)] + ([cfg.activation["image"]] if cfg.activation.get("image") is not None else [])
-    try:
-        if progress is None:
-            with _progress(cfg.steps + 1, "load step") as bar:
-                results = solve(model, cfg, progress=bar, activation=ramp)
-        else:
-            results = solve(model, cfg, progress=progress or None, activation=ramp)
-    except SolverError as exc:
-        partial = getattr(exc, "results", None)
-        if partial is not None:
-            partial.info["activation"] = _per_muscle(cfg, ramp, model)
-            save_results(out_path, partial, config=cfg, inputs=inputs)
-            _LOG.error("solve failed; converged steps written to %s (status: %s)", out_path, partial.status)
-        raise
+    with capture_warnings() as warnings:
+        model = load_model(model_path)
+        ramp = model_activation(model, cfg)
+        _LOG.info("solve: %d nodes, %d load steps, activation %s", model.n_nodes, cfg.steps, _describe(cfg, ramp, model))
+        inputs = [Path(model_path)] + ([cfg.activation["image"]] if cfg.activation.get("image") is not None else [])
+        try:
+            if progress is None:
+                with _progress(cfg.steps + 1, "load step") as bar:
+                    results = solve(model, cfg, progress=bar, activation=ramp)
+            else:
+                results = solve(model, cfg, progress=progress or None, activation=ramp)
+        except SolverError as exc:
+            partial = getattr(exc, "results", None)
+            if partial is not None:
+                partial.info["activation"] = _per_muscle(cfg, ramp, model)
+                save_results(out_path, partial, config=cfg, inputs=inputs,
+                             attrs=stage_attrs("solve", inputs, warnings, synthetic=synthetic))
+                _LOG.error("solve failed; converged steps written to %s (status: %s)", out_path, partial.status)
+            raise
     results.info["activation"] = _per_muscle(cfg, ramp, model)
-    save_results(out_path, results, config=cfg, inputs=inputs)
+    save_results(out_path, results, config=cfg, inputs=inputs,
+                 attrs=stage_attrs("solve", inputs, warnings, synthetic=synthetic))
     info = results.info
     _LOG.info("solve: done in %.1f s (build %.1f s, %d assemblies %.1f s, linear solves %.1f s)", info.get("total_s", 0.0),
               info.get("build_s", 0.0), info.get("n_assembly", 0), info.get("assembly_s", 0.0),

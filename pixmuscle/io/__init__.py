@@ -1,0 +1,3 @@
+"""File I/O at the edge: the one reader and writer of ``results.h5`` (:mod:`pixmuscle.io.results`)
+and the stage records every stage file carries (:mod:`pixmuscle.io.lineage`: warnings, upstream
+stages, the ``synthetic`` flag)."""

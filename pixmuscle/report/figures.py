@@ -1,0 +1,198 @@
+"""The report's figures, in one registry: each entry says where on the page it goes and how it is made.
+
+A figure is a function ``make(ctx) -> Path | None`` registered with :func:`figure`; the report
+stage calls every registered figure in order and the HTML page shows each in its section. Adding
+a figure is one decorated function here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..mechanics.results import Results
+from . import curves as C
+from .config import ReportConfig
+
+#: sections of the page, in order (key → heading)
+SECTIONS = {
+    "force": "Force–activation",
+    "model": "Model in 3-D",
+    "slices": "Fields on slices",
+    "solver": "Solver and Newton statistics",
+}
+
+
+@dataclasses.dataclass
+class Context:
+    """What a figure may use: the results, the summary, the config, the output folder, and a list
+    to append warnings to. ``extra`` is the caller's run information (comparison curves)."""
+
+    res: Results
+    summary: dict
+    cfg: ReportConfig
+    outdir: Path
+    warnings: list
+    extra: dict
+
+
+@dataclasses.dataclass(frozen=True)
+class FigureSpec:
+    key: str
+    section: str
+    caption: str
+    make: Callable[[Context], Path | None]
+
+
+FIGURES: list[FigureSpec] = []
+
+
+def figure(key: str, section: str, caption: str):
+    """Register ``make(ctx) -> Path | None`` as figure ``key`` (file ``<key>.png``) of ``section``."""
+    if section not in SECTIONS:
+        raise ValueError(f"unknown report section {section!r}")
+
+    def deco(fn):
+        FIGURES.append(FigureSpec(key, section, caption, fn))
+        return fn
+
+    return deco
+
+
+def make_figures(ctx: Context) -> dict[str, tuple[FigureSpec, Path]]:
+    """Make every registered figure; returns key → (spec, PNG path) of those made."""
+    out = {}
+    for spec in FIGURES:
+        p = spec.make(ctx)
+        if p is not None:
+            out[spec.key] = (spec, Path(p))
+    return out
+
+
+# ------------------------------------------------------------------------------------------ figures
+@figure("force_activation", "force", "End force vs activation (mean of the force sets; other models overlaid)")
+def _force_activation(ctx: Context) -> Path | None:
+    res, summary, extra = ctx.res, ctx.summary, ctx.extra
+    path = Path(summary["results"]) if summary["results"] else None
+    compare = dict(extra.get("compare") or {})
+    main_label = next((lab for lab, p in compare.items()
+                       if path is not None and Path(p).resolve() == path.resolve() and len(compare) > 1), None)
+    prefix = f"{main_label}: " if main_label else ""
+    curves = {f"{prefix}{s} end": (res.alpha, np.array(summary["curve"]["axial_force_N"][s], float), res.converged)
+              for s in summary["force_sets"]}
+    curves.update(_compare_curves(compare, path, ctx))
+    for lab, c in dict(extra.get("curves") or {}).items():
+        curves[str(lab)] = tuple(c)
+    return C.plot_force_activation(curves, ctx.outdir / "force_activation.png", dpi=ctx.cfg.dpi,
+                                   title=f"Isometric force vs activation — {summary['label']}")
+
+
+def _compare_curves(compare: dict, main: Path | None, ctx: Context) -> dict:
+    """End-force curves of the other results files in ``compare`` (label → path)."""
+    from ..io.results import load_results
+
+    curves = {}
+    for lab, p in compare.items():
+        p = Path(p)
+        try:
+            if main is not None and p.resolve() == main.resolve():
+                continue
+            other = load_results(p)
+            sets = C.select_force_sets(other.reaction, ctx.cfg.force_sets, other.constrained_text())
+            f = C.end_force(C.axial_forces(other.reaction, sets), other.n_states)
+            if sets:
+                curves[f"{lab} (mean of {', '.join(sets)})"] = (other.alpha, f, other.converged)
+        except (InputError, OSError) as exc:
+            ctx.warnings.append(f"comparison curve '{lab}' not drawn: {exc}")
+    return curves
+
+
+@figure("view3d", "model", "The model coloured by muscle and tissue, and |u| and the largest principal stress on "
+                           "the deformed body (displacements drawn to scale)")
+def _view3d(ctx: Context) -> Path | None:
+    if not ctx.cfg.view3d:
+        return None
+    step = ctx.summary.get("field_step")
+    if step is None:
+        return None
+    from .view3d import render_model
+
+    path, how = render_model(ctx.res, int(step), ctx.outdir / "view3d.png", dpi=ctx.cfg.dpi)
+    ctx.summary["view3d"] = how
+    return path
+
+
+def _slice_step(ctx: Context) -> int | None:
+    return ctx.summary.get("field_step")
+
+
+@figure("slices_displacement", "slices", "Displacement magnitude on three planes through the model (reference "
+                                          "configuration); arrows: in-plane displacement")
+def _slices_u(ctx: Context) -> Path | None:
+    step = _slice_step(ctx)
+    if step is None or not ctx.cfg.slices:
+        return None
+    from .slices import plane_indices, plot_slices
+
+    m = ctx.res.model
+    fields = ctx.res.step(step)
+    umag = np.linalg.norm(fields.u, axis=1)
+    if not np.isfinite(umag).all():
+        ctx.warnings.append(f"displacement at step {step} has {int((~np.isfinite(umag)).sum())} non-finite "
+                            "values (blank on the slices)")
+    if not np.isfinite(umag).any():
+        return None
+    at = plane_indices(m.ijk, m.origin, m.spacing, ctx.cfg.slice_position)
+    a = float(ctx.res.alpha[step])
+    return plot_slices(m.ijk, m.origin, m.spacing, umag, ctx.outdir / "slices_displacement.png", label="|u| [cm]",
+                       title=f"Displacement magnitude, step {step} (α = {a:.3g}), on the reference configuration",
+                       planes_at=at, vectors=fields.u if ctx.cfg.arrows else None, cmap="viridis", dpi=ctx.cfg.dpi)
+
+
+@figure("slices_stress", "slices", "Largest principal Cauchy stress on the same planes")
+def _slices_s(ctx: Context) -> Path | None:
+    step = _slice_step(ctx)
+    if step is None or not ctx.cfg.slices:
+        return None
+    from .slices import plane_indices, plot_slices
+
+    m = ctx.res.model
+    mp = ctx.res.step(step).max_principal
+    if mp is None:
+        ctx.warnings.append("no stress in the results file: no stress slices")
+        return None
+    if not np.isfinite(mp).any():
+        return None
+    if not np.isfinite(mp).all():
+        ctx.warnings.append(f"max principal stress at step {step} has non-finite values (blank on the slices)")
+    at = plane_indices(m.ijk, m.origin, m.spacing, ctx.cfg.slice_position)
+    a = float(ctx.res.alpha[step])
+    return plot_slices(m.ijk, m.origin, m.spacing, mp, ctx.outdir / "slices_stress.png",
+                       label="max principal Cauchy stress [N/cm²]",
+                       title=f"Maximum principal Cauchy stress, step {step} (α = {a:.3g}), on the reference configuration",
+                       planes_at=at, cmap="magma", dpi=ctx.cfg.dpi)
+
+
+@figure("newton", "solver", "Newton residual per iteration of every load step")
+def _newton(ctx: Context) -> Path | None:
+    return C.plot_newton(ctx.res.newton, ctx.outdir / "newton.png", dpi=ctx.cfg.dpi)
+
+
+def field_step(res: Results, cfg: ReportConfig, warnings: list) -> int | None:
+    """The state shown on the slices and in 3-D: ``cfg.slice_step`` or the last converged one."""
+    if cfg.slice_step is not None:
+        if cfg.slice_step >= res.n_states:
+            raise InputError(f"report.slice_step: {cfg.slice_step} but the results file has steps 0..{res.n_states - 1}")
+        if not res.converged[cfg.slice_step]:
+            warnings.append(f"report.slice_step {cfg.slice_step} did not converge: the figures show a "
+                            "non-converged state")
+        return int(cfg.slice_step)
+    conv = np.flatnonzero(res.converged)
+    return int(conv[-1]) if conv.size else None
+
+
+__all__ = ["FIGURES", "SECTIONS", "Context", "FigureSpec", "figure", "make_figures", "field_step"]
