@@ -118,7 +118,7 @@ def test_activation_image_force_matches_columns(tmp_path):
                activation={"from": 0.0, "to": {"medial": 1.0, "default": 0.5}, "image": "act.nii.gz"})
     cfg = parse_section(SolveConfig, raw, "solve", tmp_path)
     run_solve(tmp_path / "model.h5", cfg, tmp_path / "results.h5", progress=False)
-    from pixmuscle.mechanics.results import load_results
+    from pixmuscle.io.results import load_results
 
     res = load_results(tmp_path / "results.h5")
     mat = make_materials(cfg.materials)[MUSCLE]

@@ -10,9 +10,9 @@ from typing import Any
 from ..config import parse_section
 from ..errors import InputError, SolverError
 from ..imaging.nifti import load_volume
-from ..mechanics.activation import ActivationRamp, activation_ramp, per_muscle_summary
 from ..io.lineage import capture_warnings, stage_attrs
 from ..io.results import save_results
+from ..mechanics.activation import ActivationRamp, activation_ramp, per_muscle_summary
 from ..mechanics.config import SolveConfig
 from ..mechanics.solve import solve
 from ..model.model import load_model
