@@ -141,7 +141,7 @@ def _provenance_rows(stages: Sequence[Mapping[str, Any]]) -> list[list]:
 
 
 def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissue: Mapping[str, Any],
-                report_config: Mapping[str, Any]) -> str:
+                report_config: Mapping[str, Any], sections: Sequence[str] = ()) -> str:
     """The report page of one results file.
 
     Parameters
@@ -155,6 +155,9 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
         Output of :func:`pixmuscle.report.tables.tissue_table`.
     report_config : mapping
         The report section as plain data.
+    sections : list of str
+        Further HTML fragments (:func:`pixmuscle.stages.report_protocols.protocol_sections`:
+        force by muscle, force–length, DWI fit), placed before the solver statistics.
     """
     from .summary import newton_table
 
@@ -223,6 +226,8 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
                      "(reference configuration, cm): Slice, Clip and Threshold return cells; apply <i>Warp By Vector</i> "
                      "with <code>displacement [cm]</code> for the deformed body. Units and the tissue and muscle names "
                      "are in the field data.</p>")
+
+    parts.extend(sections)
 
     parts.append(f"<h2>{esc(SECTIONS['solver'])}</h2>")
     parts.append(kv_table({"status": summary["status"], "total Newton iterations": nw["total_iterations"],

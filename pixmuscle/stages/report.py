@@ -31,6 +31,7 @@ from ..report.figures import Context, field_step, make_figures
 from ..report.summary import compute_summary
 from ..report.tables import table_csv_rows
 from ..store import _plain, sha256_file
+from .report_protocols import protocol_sections
 
 _LOG = logging.getLogger(__name__)
 
@@ -96,6 +97,8 @@ def make_report(results_path: str | Path, outdir: str | Path, cfg: ReportConfig 
     header, rows = C.force_table(res.alpha, res.load_factor, res.converged, res.iterations, res.reaction,
                                  summary["force_sets"])
     out["force_activation_csv"] = str(C.write_csv(outdir / "force_activation.csv", header, rows))
+    # per-muscle forces, force-length, DWI (issue 18): fills the tissue table's per-muscle F_max
+    sections = protocol_sections(extra, outdir, summary, tissue, dpi=cfg.dpi)
     out["tissue_table_csv"] = str(C.write_csv(outdir / "tissue_table.csv", tissue["header"], table_csv_rows(tissue)))
 
     if cfg.vtu and summary["field_step"] is not None:
@@ -123,7 +126,7 @@ def make_report(results_path: str | Path, outdir: str | Path, cfg: ReportConfig 
     if cfg.html:
         from ..report.html import report_page
 
-        text = report_page(summary, figures, tissue=tissue, report_config=_plain(cfg))
+        text = report_page(summary, figures, tissue=tissue, report_config=_plain(cfg), sections=sections)
         (outdir / "index.html").write_text(text, encoding="utf-8")
     (outdir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary

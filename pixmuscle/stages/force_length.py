@@ -1,0 +1,110 @@
+"""Stage ``force_length``: active, passive and total end force against muscle length.
+
+``model.h5`` → ``force_length_<model>.h5``, schema ``pixmuscle.force_length`` v1
+(method: :mod:`pixmuscle.mechanics.protocols`)::
+
+    /delta     (P,) cm   prescribed displacement of the swept end (shortening < 0, lengthening > 0, 0)
+    /length    (P,) cm   muscle length L0 + δ
+    /stretch   (P,)      L / L0
+    /total     (P,) N    end force at the fixed activation
+    /passive   (P,) N    end force at α = 0
+    /active    (P,) N    total − passive
+    attrs: L0_cm, nodes, component, activation (JSON), force_sets (JSON), runs (JSON: run → status)
+
+Points are sorted by length; NaN where a run did not converge.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError, SolverError
+from ..mechanics.protocols import ForceLengthConfig, force_length_cases, reference_length
+from ..mechanics.solve import solve
+from ..model.model import load_model
+from ..store import open_stage, write_dataset, write_stage
+from .muscle_forces import end_force_of
+from .solve import model_activation
+
+SCHEMA = "pixmuscle.force_length"
+VERSION = 1
+_LOG = logging.getLogger(__name__)
+
+__all__ = ["SCHEMA", "VERSION", "load_force_length", "run_force_length"]
+
+
+def run_force_length(model_path, solve_cfg, cfg: ForceLengthConfig, out_path) -> Path:
+    """Run the sweep's solves and write the curves.
+
+    Parameters
+    ----------
+    model_path : path
+    solve_cfg : SolveConfig
+        The ``solve`` section: boundary conditions (the swept end's entry is changed), materials,
+        numerics; its activation is replaced by 0 → ``cfg.activation`` (active runs) and 0 (passive).
+    cfg : ForceLengthConfig
+    out_path : path
+        ``force_length_<model>.h5``.
+    """
+    model = load_model(model_path)
+    L0 = reference_length(model, cfg.nodes, cfg.component)
+    try:
+        cases = force_length_cases(solve_cfg, cfg)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    sets = None
+    status, passive, active = {}, {}, {}
+    for i, case in enumerate(cases, 1):
+        _LOG.info("force_length: run %d of %d (%s, δ = %.4g cm)", i, len(cases), case["name"], case["delta"])
+        ramp = model_activation(model, case["cfg"])
+        try:
+            res = solve(model, case["cfg"], activation=ramp)
+            status[case["name"]] = "complete"
+        except SolverError as exc:
+            _LOG.warning("force_length: run '%s' failed: %s", case["name"], exc)
+            res = getattr(exc, "results", None)
+            status[case["name"]] = f"failed: {exc}"
+        n = case["cfg"].steps + 1
+        f = np.full(n, np.nan) if res is None else None
+        if res is not None:
+            f, sets = end_force_of(res, n, sets)
+        if case["kind"] == "passive":
+            k = np.arange(1, n)  # step k reaches deltas[k-1]; step 0 is the reference state
+            passive.update({round(d, 12): float(f[j]) for d, j in zip(case["deltas"], k, strict=True)})
+            passive[0.0] = float(f[0])
+        else:
+            active[round(case["delta"], 12)] = float(f[-1])
+    deltas = np.array(sorted(set(active) | set(passive)))
+    tot = np.array([active.get(d, np.nan) for d in deltas])
+    pas = np.array([passive.get(d, np.nan) for d in deltas])
+
+    def write(f):
+        write_dataset(f, "delta", deltas, units="cm")
+        write_dataset(f, "length", L0 + deltas, units="cm")
+        write_dataset(f, "stretch", (L0 + deltas) / L0, units="1")
+        write_dataset(f, "total", tot, units="N")
+        write_dataset(f, "passive", pas, units="N")
+        write_dataset(f, "active", tot - pas, units="N")
+
+    act = cfg.activation if isinstance(cfg.activation, dict) else float(cfg.activation)
+    attrs = {"L0_cm": L0, "nodes": cfg.nodes, "component": cfg.component, "activation": json.dumps(act),
+             "force_sets": json.dumps(sets or []), "runs": json.dumps(status)}
+    image = solve_cfg.activation.get("image")
+    write_stage(out_path, schema=SCHEMA, version=VERSION, write=write,
+                config={"solve": solve_cfg, "force_length": cfg},
+                inputs=[Path(model_path)] + ([image] if image is not None else []), attrs=attrs)
+    return Path(out_path)
+
+
+def load_force_length(path) -> dict:
+    """Read ``force_length_<model>.h5``: arrays and decoded attributes."""
+    with open_stage(path, schema=SCHEMA, version=VERSION) as f:
+        out = {k: f[k][()] for k in ("delta", "length", "stretch", "total", "passive", "active")}
+        out.update(L0_cm=float(f.attrs["L0_cm"]), nodes=str(f.attrs["nodes"]), component=str(f.attrs["component"]),
+                   activation=json.loads(f.attrs["activation"]), force_sets=json.loads(f.attrs["force_sets"]),
+                   runs=json.loads(f.attrs["runs"]))
+    return out

@@ -1,0 +1,81 @@
+"""Report additions of issue 18, called by :func:`pixmuscle.stages.report.make_report`.
+
+Reads the files the pipeline names in the report's ``extra`` mapping —
+``muscle_forces`` (``muscle_forces_<model>.h5``), ``force_length`` (``force_length_<model>.h5``),
+``dwi_qc`` (the segmentation QC folder of a DWI fit) — and returns the HTML sections; fills the
+tissue table's per-muscle F_max from the muscle-force decomposition.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+_LOG = logging.getLogger(__name__)
+
+__all__ = ["protocol_sections"]
+
+
+def _fmax_step(summary: dict) -> int | None:
+    c = summary.get("curve") or {}
+    f = np.asarray(c.get("end_force_N") or [], float)
+    ok = np.asarray(c.get("converged") or [], bool)
+    if f.size == 0 or ok.shape != f.shape:
+        return None
+    ok &= np.isfinite(f)
+    return int(np.flatnonzero(ok)[np.argmax(f[ok])]) if ok.any() else None
+
+
+def protocol_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: int = 120) -> list[str]:
+    """HTML sections for per-muscle forces, force–length curves and the DWI fit named in ``extra``.
+
+    Side effects: writes the PNG/CSV files into ``outdir``; fills ``tissue["rows"]`` and
+    ``summary["tissue_table"]`` per-muscle F_max; adds ``summary["muscle_forces"]`` /
+    ``summary["outputs"]`` entries and warnings to ``summary["warnings"]``.
+    """
+    from ..report.dwi import dwi_section
+    from ..report.protocols import force_length_section, muscle_forces_section
+
+    outdir = Path(outdir)
+    warnings = summary["warnings"]
+    parts: list[str] = []
+    if extra.get("muscle_forces"):
+        from .muscle_forces import load_muscle_forces
+
+        try:
+            mf = load_muscle_forces(extra["muscle_forces"])
+        except (InputError, OSError) as exc:
+            warnings.append(f"per-muscle forces not shown: {exc}")
+        else:
+            k = _fmax_step(summary)
+            if k is not None and k >= len(mf["total"]):
+                warnings.append("per-muscle forces: the decomposition has fewer steps than the results; not tabulated")
+                k = None
+            p, info = muscle_forces_section(mf, outdir, rows=tissue["rows"], k=k, dpi=dpi, warnings=warnings)
+            parts += p
+            summary["outputs"].update(info.pop("outputs"))
+            if info:
+                summary["muscle_forces"] = info
+                fmax = summary.get("F_max_N")
+                if fmax and abs(info["total_N"] - fmax) > 1e-6 * abs(fmax):
+                    warnings.append(f"per-muscle forces: their all-muscle run gives {info['total_N']:.6g} N at the step "
+                                    f"of F_max, the results {fmax:.6g} N (stale muscle_forces file?)")
+                summary["tissue_table"] = [dict(r) for r in tissue["rows"]]
+    if extra.get("force_length"):
+        from .force_length import load_force_length
+
+        try:
+            fl = load_force_length(extra["force_length"])
+        except (InputError, OSError) as exc:
+            warnings.append(f"force–length curves not shown: {exc}")
+        else:
+            p, info = force_length_section(fl, outdir, dpi=dpi, warnings=warnings)
+            parts += p
+            summary["outputs"].update(info["outputs"])
+    if extra.get("dwi_qc"):
+        parts += dwi_section(extra["dwi_qc"])
+    return parts
