@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, SolverError
+from ..io.lineage import capture_warnings, stage_attrs
 from ..mechanics.protocols import ForceLengthConfig, force_length_cases, reference_length
 from ..mechanics.solve import solve
 from ..model.model import load_model
@@ -37,7 +38,7 @@ _LOG = logging.getLogger(__name__)
 __all__ = ["SCHEMA", "VERSION", "load_force_length", "run_force_length"]
 
 
-def run_force_length(model_path, solve_cfg, cfg: ForceLengthConfig, out_path) -> Path:
+def run_force_length(model_path, solve_cfg, cfg: ForceLengthConfig, out_path, *, synthetic: bool = False) -> Path:
     """Run the sweep's solves and write the curves.
 
     Parameters
@@ -49,7 +50,14 @@ def run_force_length(model_path, solve_cfg, cfg: ForceLengthConfig, out_path) ->
     cfg : ForceLengthConfig
     out_path : path
         ``force_length_<model>.h5``.
+    synthetic : bool
+        The inputs are synthetic phantoms (recorded in the file).
     """
+    with capture_warnings() as warnings:
+        return _run(model_path, solve_cfg, cfg, out_path, warnings, synthetic)
+
+
+def _run(model_path, solve_cfg, cfg, out_path, warnings, synthetic) -> Path:
     model = load_model(model_path)
     L0 = reference_length(model, cfg.nodes, cfg.component)
     try:
@@ -94,9 +102,10 @@ def run_force_length(model_path, solve_cfg, cfg: ForceLengthConfig, out_path) ->
     attrs = {"L0_cm": L0, "nodes": cfg.nodes, "component": cfg.component, "activation": json.dumps(act),
              "force_sets": json.dumps(sets or []), "runs": json.dumps(status)}
     image = solve_cfg.activation.get("image")
+    inputs = [Path(model_path)] + ([image] if image is not None else [])
+    attrs.update(stage_attrs("force_length", inputs, warnings, synthetic=synthetic))
     write_stage(out_path, schema=SCHEMA, version=VERSION, write=write,
-                config={"solve": solve_cfg, "force_length": cfg},
-                inputs=[Path(model_path)] + ([image] if image is not None else []), attrs=attrs)
+                config={"solve": solve_cfg, "force_length": cfg}, inputs=inputs, attrs=attrs)
     return Path(out_path)
 
 

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, SolverError
+from ..io.lineage import capture_warnings, stage_attrs
 from ..mechanics.activation import ActivationRamp
 from ..mechanics.protocols import MuscleForcesConfig, decompose, muscle_force_ramps
 from ..mechanics.solve import solve
@@ -64,7 +65,8 @@ def _solve_quiet(model, cfg, ramp, label):
         return getattr(exc, "results", None), f"failed: {exc}"
 
 
-def run_muscle_forces(model_path, solve_cfg, cfg: MuscleForcesConfig | None, out_path, results_path=None) -> Path:
+def run_muscle_forces(model_path, solve_cfg, cfg: MuscleForcesConfig | None, out_path, results_path=None, *,
+                      synthetic: bool = False) -> Path:
     """Run the baseline and the single-muscle solves and write the decomposition.
 
     Parameters
@@ -80,7 +82,14 @@ def run_muscle_forces(model_path, solve_cfg, cfg: MuscleForcesConfig | None, out
     results_path : path, optional
         The solve stage's results of the same model and config, used as the all-muscle run
         (solved again when not given).
+    synthetic : bool
+        The inputs are synthetic phantoms (recorded in the file).
     """
+    with capture_warnings() as warnings:
+        return _run(model_path, solve_cfg, cfg, out_path, results_path, warnings, synthetic)
+
+
+def _run(model_path, solve_cfg, cfg, out_path, results_path, warnings, synthetic) -> Path:
     from ..io.results import load_results
 
     cfg = cfg or MuscleForcesConfig()
@@ -129,7 +138,7 @@ def run_muscle_forces(model_path, solve_cfg, cfg: MuscleForcesConfig | None, out
     inputs = [Path(model_path)] + ([Path(results_path)] if results_path is not None and Path(results_path).is_file()
                                    else [])
     attrs = {"muscles": json.dumps(list(forces)), "force_sets": json.dumps(sets), "runs": json.dumps(status),
-             "method": METHOD}
+             "method": METHOD, **stage_attrs("muscle_forces", inputs, warnings, synthetic=synthetic)}
     write_stage(out_path, schema=SCHEMA, version=VERSION, write=write,
                 config={"solve": solve_cfg, "muscle_forces": cfg}, inputs=inputs, attrs=attrs)
     _LOG.info("muscle_forces: %s", ", ".join(f"{k} {v[-1]:.4g} N" for k, v in dec["contribution"].items()))
