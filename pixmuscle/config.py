@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import types
 import typing
 from collections.abc import Mapping
@@ -104,6 +105,8 @@ def _coerce(value: Any, tp: Any, where: str, base_dir: Path, meta: Mapping) -> A
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise InputError(f"{where}: expected a number, got {_got(value)}")
         value = float(value)
+        if not math.isfinite(value):
+            raise InputError(f"{where}: expected a finite number, got {value}")
         _check_range(value, where, meta)
         return value
     if tp is str:
@@ -199,19 +202,60 @@ def parse_section(cls: type, data: Mapping | None, where: str, base_dir: Path | 
         raise InputError(f"{where}: {exc}") from None
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """Safe YAML loader that refuses a mapping key given twice (plain YAML keeps the last one)."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen: dict = {}  # explicit keys only: a key may override one merged in with `<<:`
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    first = seen.setdefault(key, key_node.start_mark)
+                except TypeError:  # unhashable key: let the base class report it
+                    continue
+                if first is not key_node.start_mark:
+                    m = key_node.start_mark
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"key {key!r} is given twice (first on line {first.line + 1}); keep one", m)
+        return super().construct_mapping(node, deep=deep)
+
+
+def _yaml_error_line(path: Path, exc: yaml.YAMLError) -> str:
+    """One line ``file:line:column: problem`` for a YAML error (PyYAML's own text spans several lines)."""
+    mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    context = getattr(exc, "context", None)
+    where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
+    what = f"{problem} ({context})" if context and "given twice" not in problem else problem
+    return f"{where}: not valid YAML: {' '.join(what.split())}"
+
+
 def read_yaml(path: str | Path) -> dict:
-    """Read a YAML mapping with a clear error for a missing or malformed file."""
+    """Read a YAML mapping; every problem is one :class:`InputError` line naming the file.
+
+    Refused: a missing or unreadable file, a syntax error (reported as ``file:line:column``), a key
+    given twice in one mapping, an empty file and a top level that is not a mapping.
+    """
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: config file not found")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, expected a YAML config file")
     try:
-        data = yaml.safe_load(path.read_text())
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read the config file ({exc})") from None
+    try:
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as exc:
-        raise InputError(f"{path}: not valid YAML ({exc})") from None
+        raise InputError(_yaml_error_line(path, exc)) from None
     if data is None:
-        data = {}
+        raise InputError(f"{path}: the config file is empty (expected sections such as build_model, solve, report)")
     if not isinstance(data, dict):
-        raise InputError(f"{path}: expected a mapping of sections at the top level")
+        raise InputError(f"{path}: expected a mapping of sections at the top level, got {type(data).__name__}")
     return data
 
 

@@ -19,3 +19,7 @@ class SchemaError(InputError):
 
 class SolverError(PixmuscleError, RuntimeError):
     """A numerical failure: non-convergence after all cutbacks, inverted material points, ..."""
+
+
+class OutputError(PixmuscleError, OSError):
+    """An output that cannot be written (disk full, read-only file system); nothing partial is left."""

@@ -1,9 +1,15 @@
 """HDF5 stage files: schema and version, units, config and provenance, atomic writes.
 
-Every pipeline stage writes exactly one HDF5 file through :func:`write_stage`. The file is first
-written to a temporary name in the destination folder and renamed over the destination only when
-complete (``os.replace`` is atomic on POSIX), so a killed run never leaves a file that looks
-finished. Root attributes:
+Every pipeline stage writes exactly one HDF5 file through :func:`write_stage`. The file is built
+in memory (so an I/O error can never happen inside the HDF5 library, whose failing ``close`` on a
+full disk may crash the interpreter), its size is checked against the free space, then written to a
+hidden temporary name ``.<name>.<pid>.<random>.partial`` in the destination folder and renamed over
+the destination only when complete (``os.replace`` is atomic on POSIX), so a killed run never
+leaves a file that looks finished. A write failure (disk full, read-only file system) is an
+:class:`~pixmuscle.errors.OutputError` naming the path and the free space, with nothing left
+behind; temporary files of a process that no longer runs are removed by the next write of the
+same file. :func:`atomic_folder` does the same for a folder of outputs (the report). Root
+attributes:
 
 ``schema`` (str), ``schema_version`` (int), ``units`` (JSON), ``config`` (YAML of the config
 section that produced the file), ``provenance`` (JSON: package version, UTC time, command line,
@@ -14,9 +20,13 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import errno
 import hashlib
+import io
 import json
 import os
+import shutil
+import socket
 import sys
 import tempfile
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -28,7 +38,7 @@ import numpy as np
 import yaml
 
 from . import __version__
-from .errors import InputError, SchemaError
+from .errors import InputError, OutputError, SchemaError
 
 DEFAULT_UNITS = {"length": "cm", "force": "N", "stress": "N/cm^2", "volume": "cm^3"}
 
@@ -119,25 +129,149 @@ def write_stage(
         The final path.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
-    os.close(fd)
+    buf = io.BytesIO()
+    with h5py.File(buf, "w") as f:
+        f.attrs["schema"] = schema
+        f.attrs["schema_version"] = int(version)
+        f.attrs["units"] = json.dumps(dict(units or DEFAULT_UNITS))
+        f.attrs["config"] = yaml.safe_dump(_plain(config), sort_keys=False) if config is not None else ""
+        f.attrs["provenance"] = json.dumps(provenance(inputs, config))
+        for k, v in (attrs or {}).items():
+            f.attrs[k] = v
+        write(f)
+    write_bytes_atomic(path, buf.getbuffer())
+    return path
+
+
+#: errors of the file system being written (as opposed to a bug or a missing input)
+_WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO, errno.EFBIG)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _temp_prefix(name: str) -> str:
+    return f".{name}.{socket.gethostname()}.{os.getpid()}."
+
+
+def _pid_alive(pid: int) -> bool:
     try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["schema"] = schema
-            f.attrs["schema_version"] = int(version)
-            f.attrs["units"] = json.dumps(dict(units or DEFAULT_UNITS))
-            f.attrs["config"] = yaml.safe_dump(_plain(config), sort_keys=False) if config is not None else ""
-            f.attrs["provenance"] = json.dumps(provenance(inputs, config))
-            for k, v in (attrs or {}).items():
-                f.attrs[k] = v
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_dead_temporaries(folder: Path, name: str) -> None:
+    """Remove ``.<name>.<host>.<pid>.*.partial`` left in ``folder`` by a process of this host that no
+    longer runs (a killed write). Temporaries of live processes and other hosts are kept."""
+    import glob
+
+    host = socket.gethostname()
+    for p in folder.glob(f".{glob.escape(name)}.*.partial"):
+        middle = p.name[len(name) + 2:-len(".partial")]  # <host>.<pid>.<random>
+        parts = middle.rsplit(".", 2)
+        if len(parts) != 3 or parts[0] != host or not parts[1].isdigit() or _pid_alive(int(parts[1])):
+            continue
         with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
+
+
+def write_bytes_atomic(path: str | os.PathLike, data: bytes | memoryview) -> Path:
+    """Write ``data`` to ``path`` through a hidden temporary file and ``os.replace``.
+
+    The free space is checked first; any write error removes the temporary file.
+
+    Raises
+    ------
+    OutputError
+        Not enough free space, or the file system refused the write (the message names the path,
+        the reason and the free space).
+    """
+    from .outdir import describe_os_error, free_bytes, prepare_output_dir
+
+    path = Path(path)
+    prepare_output_dir(path.parent, "output folder")
+    remove_dead_temporaries(path.parent, path.name)
+    size = len(data)
+    free = free_bytes(path.parent)
+    if size > free:
+        raise OutputError(f"{path}: not enough free disk space: the file needs {size / 1e6:.1f} MB, "
+                          f"{free / 1e6:.1f} MB free; nothing was written")
+    tmp = None
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path.name), suffix=".partial", dir=path.parent)
+        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600; a stage file is an ordinary file
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        if tmp is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+        if exc.errno in _WRITE_ERRNOS:
+            raise OutputError(describe_os_error(exc, path) + "; nothing was written") from None
+        raise
+    except BaseException:
+        if tmp is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
         raise
     return path
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
+    """Build a folder of outputs under a hidden temporary name and put it in place as a unit.
+
+    ``with atomic_folder("out/report") as tmp:`` — write every file into ``tmp``; when the block
+    ends without error the old folder (if any) is moved aside and ``tmp`` renamed to ``path``, so a
+    reader sees either the old folder or the new one, never a mix. On an error (or a kill) the
+    temporary folder is removed (or, after a kill, by the next call or the next ``pixmuscle run``)
+    and the old folder is left as it was.
+
+    Raises
+    ------
+    OutputError
+        The file system refused a write (disk full, read-only).
+    """
+    from .outdir import describe_os_error, prepare_output_dir
+
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{path}: is a file, expected a folder (or a path that does not exist)")
+    prepare_output_dir(path.parent, "output folder")
+    remove_dead_temporaries(path.parent, path.name)
+    tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(path.name), suffix=".partial", dir=path.parent))
+    os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700
+    try:
+        try:
+            yield tmp
+        except OSError as exc:
+            if exc.errno in _WRITE_ERRNOS:
+                raise OutputError(describe_os_error(exc, path) + "; nothing of it was kept, the previous one (if any) "
+                                  "is unchanged") from None
+            raise
+        old = None
+        if path.exists():
+            old = Path(tempfile.mkdtemp(prefix=_temp_prefix(path.name), suffix=".partial", dir=path.parent))
+            os.replace(path, old / path.name)
+        os.replace(tmp, path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 @contextlib.contextmanager

@@ -168,6 +168,30 @@ def _boundary_area(faces: Faces, n_nodes: int) -> np.ndarray:
     return area
 
 
+def check_boundary_conditions(model, bcs: list[BoundaryCondition]) -> None:
+    """Check the boundary conditions against a model before any assembly.
+
+    Raises
+    ------
+    InputError
+        A node set the model does not have, or a ``point`` farther than one cell diagonal
+        (‖spacing‖) from every node (outside the body, or given in mm instead of cm).
+    """
+    X = np.asarray(model.X, float)
+    h = np.asarray(model.spacing, float)
+    for b, bc in enumerate(bcs):
+        if bc.nodes is not None and bc.nodes not in model.sets:
+            avail = ", ".join(sorted(model.sets)) or "none"
+            raise InputError(f"solve.boundary_conditions[{b}].nodes: node set {bc.nodes!r} is not in the model (available: {avail})")
+        if bc.point is not None and X.shape[0]:
+            p = np.asarray(bc.point, float)
+            dist = float(np.sqrt(np.min(np.sum((X - p) ** 2, axis=1))))
+            if dist > float(np.linalg.norm(h)):
+                raise InputError(f"solve.boundary_conditions[{b}].point: {p.tolist()} cm is {dist:.3g} cm from the nearest "
+                                 f"node, more than one cell ({float(np.linalg.norm(h)):.3g} cm) from the body; "
+                                 "give a point on or inside the body (cm, model frame)")
+
+
 def constraint_points(model, bcs: list[BoundaryCondition], faces: Faces, *, at: str = "auto"):
     """Constraint points, weights and targets of the boundary conditions (no shape functions yet).
 
@@ -179,8 +203,9 @@ def constraint_points(model, bcs: list[BoundaryCondition], faces: Faces, *, at: 
     Raises
     ------
     InputError
-        A node set that the model does not have.
+        See :func:`check_boundary_conditions`.
     """
+    check_boundary_conditions(model, bcs)
     X = np.asarray(model.X, float)
     n = X.shape[0]
     h = np.asarray(model.spacing, float)
@@ -200,9 +225,6 @@ def constraint_points(model, bcs: list[BoundaryCondition], faces: Faces, *, at: 
             where = X[idx]
             w = np.full(1, vol ** (2.0 / 3.0))
         else:
-            if bc.nodes not in model.sets:
-                avail = ", ".join(sorted(model.sets)) or "none"
-                raise InputError(f"solve.boundary_conditions[{b}].nodes: node set {bc.nodes!r} is not in the model (available: {avail})")
             idx = np.unique(np.asarray(model.sets[bc.nodes], np.int64))
             if idx.size and (idx.min() < 0 or idx.max() >= n):
                 raise InputError(f"model set {bc.nodes!r}: node index out of range 0..{n - 1}")

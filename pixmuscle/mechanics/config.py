@@ -168,6 +168,11 @@ class NewtonConfig:
     line_search: bool = True
     max_line_search: int = field(default=8, metadata={"range": (0, None)})
 
+    def __post_init__(self):
+        if self.max_iterations < 2 and self.energy_tol < 1.0:
+            raise ValueError("max_iterations: 1 can never converge a load step (the energy test compares an update "
+                             "with the largest of the step, so it needs a second iteration); use 2 or more")
+
 
 @dataclasses.dataclass(frozen=True)
 class LinearSolverConfig:

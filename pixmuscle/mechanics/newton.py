@@ -25,7 +25,9 @@ state inverts a material point) the step is halved up to ``max_line_search`` tim
 still fails, a non-finite residual, or no convergence in ``max_iterations`` makes the load step
 fail; :func:`load_steps` then halves the load increment (cutback) and retries, up to
 ``max_cutbacks`` times, and finally raises :class:`~pixmuscle.errors.SolverError` naming the step,
-α and the last residual.
+α and the last residual. It gives up before the last cutback when a smaller increment cannot help
+(see :func:`_cutback_cannot_help`: a failed linear solve or a non-finite residual at the start of
+an increment, or two successive attempts that stagnated).
 """
 
 from __future__ import annotations
@@ -194,6 +196,29 @@ def _predict(system, d, last, dt, t, alpha):
     return system.evaluate(d, t, alpha)
 
 
+def _stagnated(res: NewtonResult, cfg: NewtonConfig) -> bool:
+    """A failed attempt that spent a third of ``max_iterations`` or more without halving its residual."""
+    rel = [r.relative_residual for r in res.rows if np.isfinite(r.relative_residual)]
+    return res.iterations >= max(2, cfg.max_iterations // 3) and bool(rel) and min(rel) > 0.5 * rel[0]
+
+
+def _cutback_cannot_help(res: NewtonResult, stalled: int) -> str:
+    """Why a smaller load increment cannot rescue a failed attempt ("" when it may).
+
+    * the linear solver failed, or the residual was not finite, at the start state of the
+      attempt (a singular tangent or a bad state does not depend on the increment);
+    * two successive attempts, each with a halved increment, stagnated: Newton spent a third of its
+      iterations or more without halving the residual, so the increment size is not what stops it
+      (e.g. a prescribed stretch far beyond what the tissue model can follow).
+    Quick failures (an inverted material point in the line search) always get their cutbacks.
+    """
+    if res.iterations == 0 and (res.reason.startswith("linear solver") or res.reason == "non-finite residual"):
+        return f"{res.reason.split(':')[0]} at the start of the increment, which a smaller increment does not change"
+    if stalled >= 2:
+        return "two successive cutbacks stagnated (a third of the Newton iterations or more without halving the residual)"
+    return ""
+
+
 @dataclasses.dataclass
 class StepRecord:
     """Converged state of one load step and its Newton log."""
@@ -244,6 +269,7 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
         t_target = k / n_steps
         dt = t_target - t_done
         cut = 0
+        stalled = 0  # successive failed attempts in which Newton stagnated (see _stagnated)
         rows: list = []
         iters = 0
         first = True
@@ -265,11 +291,15 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
                 state = res.state
                 continue
             cut += 1
-            _LOG.info("load step %d: Newton failed at load factor %.4g (%s); cutting back", k, t_try, res.reason)
-            if cut > cfg.max_cutbacks or dt <= 0:
+            stalled = stalled + 1 if _stagnated(res, cfg) else 0
+            hopeless = _cutback_cannot_help(res, stalled)
+            if not hopeless:
+                _LOG.info("load step %d: Newton failed at load factor %.4g (%s); cutting back", k, t_try, res.reason)
+            if cut > cfg.max_cutbacks or dt <= 0 or hopeless:
                 exc = SolverError(
                     f"load step {k} of {n_steps} (α = {alpha_of(t_try):.4g}, load factor {t_try:.4g}) did not converge "
                     f"after {cut - 1} cutbacks: {res.reason}; last relative residual {res.relative_residual:.3g}"
+                    + (f"; stopped early: {hopeless}" if hopeless else "")
                 )
                 exc.records = records
                 exc.rows = rows

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import InputError
 from ..store import open_stage, read_strings, write_dataset, write_stage
 
 SCHEMA = "pixmuscle.model"
@@ -102,8 +103,23 @@ def write_model_groups(f: Any, model: Model) -> None:
     f.attrs["coarsen_factor"] = int(model.coarsen_factor)
 
 
+#: datasets (and groups) every model has; ``muscles/names`` and ``grid/bone_ijk`` are optional
+REQUIRED_DATASETS = ("nodes/X", "nodes/ijk", "nodes/tissue", "nodes/muscle_id", "nodes/fiber", "grid/spacing",
+                     "grid/origin", "grid/shape", "grid/rotation", "sets")
+
+
 def read_model_groups(f: Any) -> Model:
-    """Read a :class:`Model` from the groups of an open HDF5 file (model or results file)."""
+    """Read a :class:`Model` from the groups of an open HDF5 file (model or results file).
+
+    Raises
+    ------
+    InputError
+        A required dataset is missing (the message names it and the file).
+    """
+    missing = [k for k in REQUIRED_DATASETS if k not in f]
+    if missing:
+        raise InputError(f"{f.filename}: dataset '/{missing[0]}' is missing (a pixmuscle.model v1 file has "
+                         f"{', '.join('/' + k for k in REQUIRED_DATASETS)}); rebuild it with build-model")
     n = f["nodes"]
     names = read_strings(f["muscles/names"]) if "muscles/names" in f else []
     return Model(

@@ -23,6 +23,7 @@ Frames: ``"model"`` writes the grid-aligned model frame (cm). ``"rotated"`` appl
 
 from __future__ import annotations
 
+import io
 import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -197,7 +198,10 @@ class XdmfSeries:
 
         self.path = Path(path)
         self.h5_path = self.path.with_suffix(".h5")
-        self._h5 = h5py.File(self.h5_path, "w")
+        # built in memory and written on close (pixmuscle.store.write_bytes_atomic): HDF5 closing a
+        # file on a full disk can crash the interpreter; a Python write raises a clean error
+        self._buf = io.BytesIO()
+        self._h5 = h5py.File(self._buf, "w")
         self._h5["points"] = np.asarray(points, float)
         self._h5["hexahedra"] = np.asarray(hexa, np.int64)
         self._n_points, self._n_cells = points.shape[0], hexa.shape[0]
@@ -228,7 +232,10 @@ class XdmfSeries:
                            + "".join(attrs) + "</Grid>")
 
     def close(self) -> Path:
+        from ..store import write_bytes_atomic
+
         self._h5.close()
+        write_bytes_atomic(self.h5_path, self._buf.getbuffer())
         body = "\n".join(f"      {g}" for g in self._steps)
         self.path.write_text('<?xml version="1.0"?>\n<Xdmf Version="3.0">\n  <Domain>\n'
                              '    <Grid Name="fields" GridType="Collection" CollectionType="Temporal">\n'

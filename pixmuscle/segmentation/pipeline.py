@@ -130,6 +130,87 @@ def seeds_to_voxels(seeds, units, affine, shape):
     return names, points
 
 
+def _zero_tensor(tensor, covered) -> np.ndarray:
+    """Voxels inside the DTI field of view whose tensor is all zero (no diffusion signal)."""
+    t = np.asarray(tensor)
+    zero = ~np.any(t.reshape(t.shape[:3] + (-1,)) != 0, axis=-1)
+    return zero if covered is None else zero & np.asarray(covered, bool)
+
+
+def muscle_like(candidates, intensity, muscle) -> np.ndarray:
+    """The candidate voxels that look like muscle on the MRI, in blobs rather than thin rims.
+
+    Muscle-like: intensity within two standard deviations of the mean over ``muscle`` voxels.
+    An in-plane 3 × 3 opening then drops one-voxel rims (partial volume at a fat boundary), so
+    what is left are regions that a DTI gap took away from a muscle.
+
+    Parameters
+    ----------
+    candidates, muscle : ndarray of bool, shape ``(I, J, K)``
+    intensity : ndarray of float, shape ``(I, J, K)``
+    """
+    if not muscle.any() or not candidates.any():
+        return np.zeros_like(candidates, dtype=bool)
+    mu, sd = float(intensity[muscle].mean()), float(intensity[muscle].std())
+    like = candidates & (np.abs(intensity - mu) <= 2.0 * sd)
+    plane = np.zeros((3, 3, 3), bool)
+    plane[:, :, 1] = True
+    return ndi.binary_opening(like, structure=plane)
+
+
+def no_signal_per_muscle(no_signal, muscle_id, n_muscles, spacing) -> np.ndarray:
+    """Voxels without diffusion signal, attributed to the nearest muscle.
+
+    Parameters
+    ----------
+    no_signal : ndarray of bool, shape ``(I, J, K)``
+        Voxels without DTI signal that look like muscle.
+    muscle_id : ndarray of int, shape ``(I, J, K)``
+        0 or 1..M.
+    n_muscles : int
+    spacing : (3,) float
+        Voxel size (cm) for the distances.
+
+    Returns
+    -------
+    ndarray of int64, shape ``(M,)``
+        Count of no-signal voxels whose nearest muscle voxel belongs to muscle m (0 when there is
+        no muscle voxel at all).
+    """
+    out = np.zeros(n_muscles, np.int64)
+    if not no_signal.any() or not (muscle_id > 0).any():
+        return out
+    _, idx = ndi.distance_transform_edt(muscle_id == 0, sampling=spacing, return_indices=True)
+    nearest = muscle_id[tuple(i[no_signal] for i in idx)]
+    return np.bincount(nearest, minlength=n_muscles + 1)[1:n_muscles + 1].astype(np.int64)
+
+
+def no_signal_warnings(no_signal, muscle_voxels, names) -> list[str]:
+    """One warning line for muscle-like voxels without DTI signal (see :func:`muscle_like`); none if there are none."""
+    no_signal, muscle_voxels = np.asarray(no_signal), np.asarray(muscle_voxels)
+    if no_signal.sum() == 0:
+        return []
+    parts = [f"{n} {int(c)} (it kept {int(m)})"
+             for n, c, m in zip(names, no_signal, muscle_voxels, strict=True) if c > 0]
+    return [f"DTI has no signal (zero tensor) in {int(no_signal.sum())} voxels that look like muscle on the MRI; "
+            f"without fibre data they cannot be muscle and were labelled fat. Voxels per nearest muscle: "
+            f"{', '.join(parts)}. Check the DTI (masking, coverage) before trusting volumes and forces"]
+
+
+def _check_distinct_seeds(names, points_ijk, when=""):
+    """Two muscles may not share a seed voxel (one of them would get no voxel at all).
+
+    ``points_ijk``: per muscle, ``(n_m, 3)`` voxel indices (i, j, k). Raises InputError naming both.
+    """
+    owner: dict = {}
+    for name, pts in zip(names, points_ijk, strict=True):  # loop over muscles (a handful)
+        for p in {tuple(int(c) for c in q) for q in np.asarray(pts).reshape(-1, 3)}:
+            other = owner.setdefault(p, name)
+            if other != name:
+                raise InputError(f"segment.seeds: '{other}' and '{name}' have a seed in the same voxel (i, j, k) = "
+                                 f"{p}{' ' + when if when else ''}; give each muscle a point inside it")
+
+
 def _snap(points, domain_t, name, max_voxels=3):
     # points (n, 3) in (z, i, j) order; move each to the nearest domain voxel of its slice
     out = points.copy()
@@ -309,6 +390,8 @@ def segment_volume(mri, affine, dti_tensor_on_grid, covered, imct_mask, imat_mas
     if dti_tensor_on_grid is None:
         raise InputError("segment: DTI tensors on the MRI grid are required (fibre data decide "
                          "which voxels are muscle and separate the muscles)")
+    names, seeds_ijk = seeds_to_voxels(cfg.seeds, cfg.seed_units, affine, shape)
+    _check_distinct_seeds(names, seeds_ijk)
     spacing_ijk = np.linalg.norm(affine[:3, :3], axis=0)
     spacing = spacing_ijk[[2, 0, 1]]  # (z, i, j) layout used below
     mode = cfg.mode
@@ -352,8 +435,8 @@ def segment_volume(mri, affine, dti_tensor_on_grid, covered, imct_mask, imat_mas
     step("fibre data", voxels=int(domain.sum()))
 
     # 4. muscles
-    names, seeds_ijk = seeds_to_voxels(cfg.seeds, cfg.seed_units, affine, shape)
     seeds_t = [_snap(s[:, [2, 0, 1]], domain, n) for n, s in zip(names, seeds_ijk, strict=True)]
+    _check_distinct_seeds(names, [s[:, [1, 2, 0]] for s in seeds_t], "after moving seeds into the muscle")
     mp = cfg.multiphase
     chans = []
     if mp.use_mri:
@@ -387,6 +470,13 @@ def segment_volume(mri, affine, dti_tensor_on_grid, covered, imct_mask, imat_mas
                                          imat_mask=imat, fibers=v)
     qc["muscle_voxels"] = np.bincount(mid.ravel(), minlength=len(names) + 1)[1:]
     qc["tissue_voxels"] = np.bincount(labels.ravel(), minlength=5)
+    no_signal = back(leg) & ~back(bone) & ~valid & _zero_tensor(dti_tensor_on_grid, covered) & ~back(imct)
+    if imat is not None:
+        no_signal &= ~imat
+    no_signal = muscle_like(no_signal, back(u), mid > 0)
+    qc["no_signal_voxels"] = no_signal_per_muscle(no_signal, mid, len(names), spacing_ijk)
+    for w in no_signal_warnings(qc["no_signal_voxels"], qc["muscle_voxels"], names):
+        _LOG.warning("%s", w)
     step("labels")
     return SegmentationResult(labels=labels, muscle_id=mid, muscle_names=names, fiber=fiber,
                               qc=qc, leg=back(leg), bone=back(bone), fiber_valid=valid,

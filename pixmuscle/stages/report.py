@@ -62,7 +62,9 @@ def make_report(results_path: str | Path, outdir: str | Path, cfg: ReportConfig 
     results_path : path-like
         ``results.h5`` (schema ``pixmuscle.results`` v1).
     outdir : path-like
-        Output folder (created when the results file has been read).
+        Output folder, written as a unit: built under a hidden temporary name beside it and put in
+        place when complete (:func:`pixmuscle.store.atomic_folder`), so a failure or a kill
+        half-way leaves the previous report as it was.
     cfg : ReportConfig, optional
     extra : dict, optional
         Run information from the caller: ``title``, ``subject`` (or ``label``), ``synthetic``
@@ -76,10 +78,16 @@ def make_report(results_path: str | Path, outdir: str | Path, cfg: ReportConfig 
         The summary of :func:`~pixmuscle.report.summary.compute_summary` plus ``outputs`` (paths
         of the written files), ``results_sha256`` and ``versions``. Also written to ``summary.json``.
     """
-    cfg = cfg or ReportConfig()
-    extra = dict(extra or {})
-    results_path, outdir = Path(results_path), Path(outdir)
+    from ..store import atomic_folder
+
+    results_path, final = Path(results_path), Path(outdir)
     res = load_results(results_path)
+    with atomic_folder(final) as work:  # written as a unit: a reader never sees two runs mixed
+        return _write_report(res, results_path, work, final, cfg or ReportConfig(), dict(extra or {}))
+
+
+def _write_report(res, results_path: Path, outdir: Path, final: Path, cfg: ReportConfig, extra: dict) -> dict:
+    """The body of :func:`make_report`: writes into ``outdir``, records the paths under ``final``."""
     summary, tissue = compute_summary(res, cfg, extra)
     warnings = summary["warnings"]
     summary["field_step"] = field_step(res, cfg, warnings)
@@ -89,7 +97,6 @@ def make_report(results_path: str | Path, outdir: str | Path, cfg: ReportConfig 
         from ..report.slices import plane_indices
 
         plane_indices(res.model.ijk, res.model.origin, res.model.spacing, cfg.slice_position)  # validates
-    outdir.mkdir(parents=True, exist_ok=True)
     out = summary["outputs"]
     summary["results_sha256"] = sha256_file(results_path)
     summary["versions"] = _versions()
@@ -120,9 +127,12 @@ def make_report(results_path: str | Path, outdir: str | Path, cfg: ReportConfig 
     for w in warnings:  # the upstream stages' warnings were shown when those stages ran
         if not w.startswith(upstream):
             _LOG.warning("report: %s", w)
+    for k, v in out.items():  # the paths as they will be once the folder is in place
+        out[k] = [str(final / Path(p).relative_to(outdir)) for p in v] if k == "vtu" else (
+            str(final / Path(v).relative_to(outdir)) if isinstance(v, str) else v)
     if cfg.html:
-        out["index_html"] = str(outdir / "index.html")
-    out["summary_json"] = str(outdir / "summary.json")
+        out["index_html"] = str(final / "index.html")
+    out["summary_json"] = str(final / "summary.json")
     if cfg.html:
         from ..report.html import report_page
 

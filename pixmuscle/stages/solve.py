@@ -13,10 +13,12 @@ from ..imaging.nifti import load_volume
 from ..io.lineage import capture_warnings, stage_attrs
 from ..io.results import save_results
 from ..mechanics.activation import ActivationRamp, activation_ramp, per_muscle_summary
+from ..mechanics.boundary import check_boundary_conditions
 from ..mechanics.config import SolveConfig
 from ..mechanics.solve import solve
 from ..model.model import load_model
 from ..model.tissues import MUSCLE
+from ..outdir import check_free_space
 from ..progress import progress as _progress
 
 _LOG = logging.getLogger(__name__)
@@ -88,7 +90,16 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
         cfg = parse_section(SolveConfig, cfg, "solve")
     with capture_warnings() as warnings:
         model = load_model(model_path)
+        check_boundary_conditions(model, list(cfg.boundary_conditions))  # before the (long) set-up
+        # results hold u, d, Cauchy stress and max principal stress per node and step (float64, gzip
+        # rarely halves them): refuse to start when even half of that does not fit
+        check_free_space(Path(out_path), 0.5 * (cfg.steps + 1) * model.n_nodes * 13 * 8, "the results of this solve")
         ramp = model_activation(model, cfg)
+        falling = {k: ab for k, ab in _per_muscle(cfg, ramp, model).items() if ab[1] < ab[0]}
+        if falling:
+            _LOG.warning("solve.activation: decreasing ramp (relaxation) for %s; allowed: the curve runs from high to "
+                         "low activation and F_max is usually at step 0",
+                         ", ".join(f"{k} {a:.3g} → {b:.3g}" for k, (a, b) in falling.items()))
         _LOG.info("solve: %d nodes, %d load steps, activation %s", model.n_nodes, cfg.steps, _describe(cfg, ramp, model))
         inputs = [Path(model_path)] + ([cfg.activation["image"]] if cfg.activation.get("image") is not None else [])
         try:

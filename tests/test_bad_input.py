@@ -1,0 +1,341 @@
+"""Failures, faults and hostile input (issue 17): each case gives one line naming the file or key,
+the exit code, and leaves nothing that looks complete.
+
+One small phantom is segmented, modelled and solved once (module fixture, a few seconds); the
+cases copy its output folder and break one thing each. Real processes where it matters (the
+output lock, stderr, disk full on a small tmpfs mounted in a private mount namespace).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+from scipy import ndimage as ndi
+from typer.testing import CliRunner
+
+from pixmuscle.cli import app
+from pixmuscle.errors import InputError, SolverError
+from pixmuscle.pipeline import load_subjects, run_subject
+from pixmuscle.synth import make_mg_phantom, write_phantom
+
+runner = CliRunner()
+
+
+# --------------------------------------------------------------------------- fixtures and helpers
+@pytest.fixture(scope="module")
+def phantom(tmp_path_factory):
+    """A tiny SYNTHETIC medial-gastrocnemius phantom (48 × 32 × 3 voxels) and a seed inside the muscle."""
+    out = tmp_path_factory.mktemp("phantom")
+    ph = make_mg_phantom("young", shape=(48, 32, 3), pixel_cm=0.156, seed=3)
+    write_phantom(ph, out, "mg")
+    k = ph.muscle_id.shape[2] // 2
+    dist = ndi.distance_transform_edt(ph.muscle_id[:, :, k] == 1)
+    i, j = np.unravel_index(np.argmax(dist), dist.shape)
+    seed = (ph.affine @ np.array([i, j, k, 1.0]))[:3].round(3).tolist()
+    return out, seed
+
+
+def base_config(phantom, out_dir) -> dict:
+    d, seed = phantom
+    return {
+        "title": "bad-input phantom", "synthetic": True, "output_dir": str(out_dir), "models": ["coarse"],
+        "segment": {"mri": str(d / "mg_mri.nii.gz"), "dti_tensor": str(d / "mg_dti_tensor.nii.gz"),
+                    "imct_mask": str(d / "mg_imct.nii.gz"), "imat_mask": str(d / "mg_imat.nii.gz"),
+                    "seeds": {"medial_gastrocnemius": [seed]}},
+        "build_model": {},
+        "coarsen": {"factor": 2},
+        "solve": {"steps": 2, "activation": {"from": 0.0, "to": 0.5},
+                  "boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]},
+                                          {"nodes": "z_max", "fix": ["x", "y", "z"]}]},
+        "report": {"vtu": True, "slices": False, "html": True},
+    }
+
+
+@pytest.fixture(scope="module")
+def solved(phantom, tmp_path_factory):
+    """Output folder of one complete run (never modified: cases work on copies)."""
+    tmp = tmp_path_factory.mktemp("solved")
+    cfg = base_config(phantom, tmp / "out")
+    path = write_config(tmp / "config.yaml", cfg)
+    run_subject(load_subjects(path)[0])
+    return tmp / "out", cfg
+
+
+def write_config(path: Path, cfg: dict | str) -> Path:
+    path.write_text(cfg if isinstance(cfg, str) else yaml.safe_dump(cfg, sort_keys=False))
+    return path
+
+
+def copy_run(solved, tmp_path, **changes) -> tuple[Path, Path]:
+    """A copy of the solved output folder and a config pointing at it (``changes``: section overrides)."""
+    src, cfg = solved
+    out = tmp_path / "out"
+    shutil.copytree(src, out)
+    cfg = {**cfg, "output_dir": str(out), **changes}
+    return write_config(tmp_path / "config.yaml", cfg), out
+
+
+def cli(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def proc(*args, **kw):
+    return subprocess.run([sys.executable, "-m", "pixmuscle.cli", *map(str, args)], capture_output=True, text=True, **kw)
+
+
+def error_line(stderr: str) -> str:
+    """The one error line of a failed command (no traceback, nothing multi-line)."""
+    assert "Traceback" not in stderr, stderr
+    lines = [ln for ln in stderr.splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1, stderr
+    return lines[0]
+
+
+def leftovers(folder: Path) -> list[str]:
+    return sorted(p.name for p in Path(folder).rglob("*") if p.name.endswith(".partial"))
+
+
+def dead_pid() -> int:
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid
+
+
+def _can_mount() -> bool:
+    if sys.platform != "linux" or shutil.which("unshare") is None:
+        return False
+    probe = subprocess.run(["unshare", "-rm", "sh", "-c", "d=$(mktemp -d) && mount -t tmpfs -o size=64k tmpfs $d"],
+                           capture_output=True)
+    return probe.returncode == 0
+
+
+needs_mount = pytest.mark.skipif(not _can_mount(), reason="cannot mount a tmpfs in a private mount namespace here")
+
+
+def in_tmpfs(mount: Path, options: str, *args) -> subprocess.CompletedProcess:
+    """Run pixmuscle with a fresh tmpfs on ``mount`` (private mount namespace: gone afterwards);
+    prints the mount's contents after the command as a line ``LEFT: ...``."""
+    mount.mkdir(parents=True, exist_ok=True)
+    cmd = " ".join(["exec_pm() {", sys.executable, "-m", "pixmuscle.cli", '"$@"; }'])
+    script = (f'mount -t tmpfs -o {options} tmpfs "$0" || exit 99; {cmd}; exec_pm "$@"; rc=$?; '
+              'echo "LEFT: $(ls -A "$0" | tr "\\n" " ")"; exit $rc')
+    return subprocess.run(["unshare", "-rm", "sh", "-c", script, str(mount), *map(str, args)],
+                          capture_output=True, text=True)
+
+
+# --------------------------------------------------------------------------- 1, 13: failed solve
+def test_max_iterations_one_is_a_config_error(solved, tmp_path):
+    """Point 13: a setting that can never converge is refused before any work."""
+    cfg_path, out = copy_run(solved, tmp_path)
+    raw = yaml.safe_load(cfg_path.read_text())
+    raw["solve"]["newton"] = {"max_iterations": 1}
+    write_config(cfg_path, raw)
+    r = cli("run", cfg_path)
+    assert r.exit_code == 2 and "solve.newton: max_iterations: 1 can never converge" in error_line(r.stderr)
+
+
+class _Saturating:
+    """One node, residual r = t·g − tanh(d) per component: no equilibrium once t·g > 1.
+
+    Newton can never get the residual below t·g − 1, so once the increment is past the limit every
+    attempt stagnates, whatever its size."""
+
+    n_nodes, atol = 1, 1e-12
+
+    def __init__(self, g):
+        self.g = g
+
+    def evaluate(self, d, t, alpha):
+        from types import SimpleNamespace
+
+        return SimpleNamespace(d=d, t=t, alpha=alpha, r=t * self.g - np.tanh(d), force_scale=max(t * self.g, 1e-30))
+
+    def energy(self, s):
+        return float(np.sum(np.log(np.cosh(s.d)) - s.t * self.g * s.d))
+
+
+class _Diagonal:
+    def prepare(self, system, state):
+        self.k = np.maximum(1.0 / np.cosh(np.minimum(np.abs(state.d), 300.0)) ** 2, 1e-300).ravel()
+
+    def solve(self, r, rtol=None):
+        return r / self.k
+
+
+def test_cutbacks_stop_when_they_cannot_help():
+    """Point 13: two stagnating attempts in a row end the step instead of cutting back 6 times."""
+    from pixmuscle.mechanics.config import NewtonConfig
+    from pixmuscle.mechanics.newton import load_steps
+
+    cfg = NewtonConfig(max_iterations=6, max_cutbacks=6)
+    with pytest.raises(SolverError) as exc:
+        load_steps(_Saturating(g=10.0), 1, 0.0, 1.0, cfg, _Diagonal())
+    msg = str(exc.value)
+    assert "after 1 cutbacks" in msg and "stopped early: two successive cutbacks stagnated" in msg
+    # a load the model can carry is still reached through cutbacks (t·g ≤ 0.9 < 1 at every step)
+    records = load_steps(_Saturating(g=0.9), 1, 0.0, 1.0, NewtonConfig(max_iterations=25), _Diagonal())
+    assert np.allclose(np.tanh(records[-1].state.d), 0.9)
+
+
+# --------------------------------------------------------------------------- 2, 16, 17: report as a unit, leftovers
+def test_report_failing_midway_leaves_the_old_report_untouched(solved, tmp_path):
+    """Point 2 and 17: the report folder is replaced as a unit; a failure half-way changes nothing."""
+    _, out = copy_run(solved, tmp_path)
+    before = {p.relative_to(out): p.read_bytes() for p in (out / "report").rglob("*") if p.is_file()}
+    bad = write_config(tmp_path / "report.yaml", {"report": {"slices": True, "slice_step": 99}})
+    r = cli("report", out / "results_coarse.h5", "-o", out / "report", "-c", bad)   # fails after the CSVs
+    assert r.exit_code == 2 and "report.slice_step" in error_line(r.stderr)
+    after = {p.relative_to(out): p.read_bytes() for p in (out / "report").rglob("*") if p.is_file()}
+    assert after == before
+    assert leftovers(out) == []
+
+
+def test_write_stage_removes_temporaries_of_dead_writers_only(tmp_path):
+    """Point 16 (single-stage commands): the next write of a file removes its dead writer's temporary."""
+    from pixmuscle.store import write_stage
+
+    host = socket.gethostname()
+    dead = tmp_path / f".m.h5.{host}.{dead_pid()}.abcd.partial"
+    alive = tmp_path / f".m.h5.{host}.{os.getpid()}.efgh.partial"
+    other_host = tmp_path / f".m.h5.elsewhere.{dead_pid()}.ijkl.partial"
+    for p in (dead, alive, other_host):
+        p.write_bytes(b"x")
+    write_stage(tmp_path / "m.h5", schema="pixmuscle.test", version=1, write=lambda f: None)
+    assert not dead.exists() and alive.exists() and other_host.exists()
+    assert oct((tmp_path / "m.h5").stat().st_mode & 0o777) == oct(0o666 & ~_umask())
+
+
+def _umask() -> int:
+    m = os.umask(0)
+    os.umask(m)
+    return m
+
+
+# --------------------------------------------------------------------------- 4: one run per output folder
+# --------------------------------------------------------------------------- 5: DTI without signal
+# --------------------------------------------------------------------------- 6, 20: boundary conditions
+def test_point_bc_far_outside_the_body(solved, tmp_path):
+    """Point 6: a point farther than one cell from every node is an error naming the BC."""
+    out, cfg = solved
+    c = write_config(tmp_path / "c.yaml", {"solve": {**cfg["solve"], "boundary_conditions": [
+        {"nodes": "z_min", "fix": ["x", "y", "z"]}, {"point": [0.0, 0.0, 162.0], "fix": ["x"]}]}})
+    r = cli("solve", out / "model_coarse.h5", "-c", c, "-o", tmp_path / "r.h5")
+    assert r.exit_code == 2
+    assert "solve.boundary_conditions[1].point: [0.0, 0.0, 162.0] cm is" in error_line(r.stderr)
+    assert not (tmp_path / "r.h5").exists() and leftovers(tmp_path) == []
+
+
+# --------------------------------------------------------------------------- 7, 12, 15, 18: config files
+@pytest.mark.parametrize("text, expected", [
+    ("solve:\n  steps: 10\n  activation: {from: 0, to: 1}\n  steps: 2\n",
+     ":4:3: not valid YAML: key 'steps' is given twice (first on line 2)"),                            # point 7
+    ("solve:\n  steps: 10\n  activation: {from: 0, to: 1\n", ":4:1: not valid YAML:"),                # point 15
+    ("solve:\n  steps: 10\n   boundary_conditions: []\n", ":3:23: not valid YAML: mapping values are not allowed here"),
+    ("", ": the config file is empty"),                                                                  # point 18
+    ("# nothing but a comment\n", ": the config file is empty"),
+])
+def test_config_file_errors_name_file_line_column(tmp_path, monkeypatch, text, expected):
+    monkeypatch.chdir(tmp_path)
+    c = write_config(tmp_path / "demo.yaml", text)
+    r = cli("run", c)
+    assert r.exit_code == 2
+    assert error_line(r.stderr).startswith(f"error: {c}{expected}")
+    assert not (tmp_path / "out").exists()                                  # nothing created (point 18)
+
+
+@pytest.mark.parametrize("solve, key", [
+    ({"boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "displace": {"z": float("nan")}}]},
+     "solve.boundary_conditions[1].displace.z: expected a finite number, got nan"),
+    ({"materials": {"muscle": {"sigma_max": float("nan")}}}, "solve.materials.muscle.sigma_max: expected a finite number, got nan"),
+    ({"activation": {"from": 0.0, "to": float("inf")}}, "solve.activation.to: expected a finite number, got inf"),
+    ({"penalty": {"factor": float("-inf")}}, "solve.penalty.factor: expected a finite number, got -inf"),
+])
+def test_nan_and_inf_in_config_name_the_key(phantom, tmp_path, solve, key):
+    """Point 12: NaN/inf are config errors naming the key (not a Newton failure later)."""
+    cfg = base_config(phantom, tmp_path / "out")
+    cfg["solve"].update(solve)
+    with pytest.raises(InputError, match=None) as exc:
+        load_subjects(write_config(tmp_path / "c.yaml", cfg))
+    assert key in str(exc.value)
+
+
+def test_nan_in_yaml_text_exit_2(phantom, tmp_path):
+    cfg = yaml.safe_dump(base_config(phantom, tmp_path / "out")).replace("to: 0.5", "to: .nan")
+    r = cli("run", write_config(tmp_path / "c.yaml", cfg))
+    assert r.exit_code == 2 and "solve.activation.to: expected a finite number, got nan" in error_line(r.stderr)
+    assert not (tmp_path / "out").exists()
+
+
+# --------------------------------------------------------------------------- 9, 10, 8: output folder and disk
+@needs_mount
+def test_disk_full_stage_file(solved, tmp_path):
+    """Point 8: a stage file that does not fit: one line with the path and the free space, nothing left."""
+    out, cfg = solved
+    c = write_config(tmp_path / "c.yaml", {"solve": cfg["solve"]})
+    target = tmp_path / "small" / "results.h5"
+    r = in_tmpfs(target.parent, "size=64k", "solve", out / "model_coarse.h5", "-c", c, "-o", target)
+    assert r.returncode == 2, r.stderr
+    line = error_line(r.stderr)
+    assert str(target) in line and "free" in line
+    assert "LEFT: \n" in r.stdout or r.stdout.strip() == "LEFT:"
+
+
+@needs_mount
+def test_disk_full_while_writing_vtu(solved, tmp_path):
+    """Point 8: the report (VTU series) runs out of space: one line, no partial VTU or report left."""
+    out, _ = solved
+    size = sum(p.stat().st_size for p in (out / "report").rglob("*") if p.is_file())
+    target = tmp_path / "small"
+    r = in_tmpfs(target, f"size={max(size // 3, 16384)}", "report", out / "results_coarse.h5", "-o", target / "report")
+    assert r.returncode == 2, r.stderr + r.stdout
+    line = error_line(r.stderr)
+    assert "free" in line and str(target) in line
+    assert r.stdout.strip() == "LEFT:"
+
+
+# --------------------------------------------------------------------------- 11: model file missing a dataset
+def test_model_missing_a_dataset(solved, tmp_path):
+    out, cfg = solved
+    model = tmp_path / "model.h5"
+    shutil.copy(out / "model_coarse.h5", model)
+    with h5py.File(model, "a") as f:
+        del f["nodes/fiber"]
+    r = cli("solve", model, "-c", write_config(tmp_path / "c.yaml", {"solve": cfg["solve"]}), "-o", tmp_path / "r.h5")
+    assert r.exit_code == 2 and f"{model}: dataset '/nodes/fiber' is missing" in error_line(r.stderr)
+    assert not (tmp_path / "r.h5").exists()
+
+
+# --------------------------------------------------------------------------- 14: two muscles, one seed
+def test_two_muscles_with_the_same_seed(phantom, tmp_path):
+    cfg = base_config(phantom, tmp_path / "out")
+    seed = cfg["segment"]["seeds"]["medial_gastrocnemius"]
+    cfg["segment"]["seeds"] = {"medial_gastrocnemius": seed, "lateral_gastrocnemius": seed}
+    r = cli("run", write_config(tmp_path / "c.yaml", cfg))
+    assert r.exit_code == 2
+    assert "segment.seeds: 'medial_gastrocnemius' and 'lateral_gastrocnemius' have a seed in the same voxel" \
+        in error_line(r.stderr)
+    assert not (tmp_path / "out/segmentation.h5").exists()
+
+
+# --------------------------------------------------------------------------- 21: decreasing activation
+def test_decreasing_ramp_is_allowed_and_logged(solved, tmp_path):
+    """Point 21: a relaxation ramp (from > to) runs, and the log says so."""
+    out, cfg = solved
+    solve = {**cfg["solve"], "activation": {"from": 0.5, "to": 0.1}}
+    r = proc("solve", out / "model_coarse.h5", "-c", write_config(tmp_path / "c.yaml", {"solve": solve}),
+             "-o", tmp_path / "r.h5")
+    assert r.returncode == 0, r.stderr
+    log = r.stdout + r.stderr
+    assert "decreasing ramp" in log and "relaxation" in log
+    with h5py.File(tmp_path / "r.h5") as f:
+        assert f.attrs["status"] == "complete"
+        np.testing.assert_allclose(f["steps/alpha"][()], [0.5, 0.3, 0.1])
