@@ -75,14 +75,18 @@ def _coerce(value: Any, tp: Any, where: str, base_dir: Path, meta: Mapping) -> A
         real = [a for a in args if a is not type(None)]
         if len(real) == 1:  # Optional[X]: X's own, more specific message
             return _coerce(value, real[0], where, base_dir, meta)
-        errors = []
+        errors = {}
         for a in args:
             if a is type(None):
                 continue
             try:
                 return _coerce(value, a, where, base_dir, meta)
             except InputError as exc:
-                errors.append(str(exc))
+                errors[a] = exc
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        for a in (float, int):  # a number that fails as a number: that message is the specific one
+            if number and a in errors:
+                raise errors[a]
         raise InputError(f"{where}: expected {_typename(tp)}, got {_got(value)}")
     if origin is Literal:
         if value not in args:
