@@ -169,11 +169,19 @@ def run(
     force: bool = typer.Option(False, "--force", help="Redo stages even when their inputs are unchanged."),
     start: str | None = typer.Option(None, "--from", help="First stage: segment, build-model, coarsen, solve, report."),
     until: str | None = typer.Option(None, "--until", help="Last stage."),
+    workers: int | None = typer.Option(None, "--workers", min=0, help=(
+        "Run the cases on a local Dask cluster of N worker processes (0: one after the other in this process). "
+        "Default: serial for one case, a local cluster sized to the machine for several.")),
+    scheduler: str | None = typer.Option(None, "--scheduler", help=(
+        "Address of an existing Dask scheduler (tcp://HOST:PORT); overrides execution.scheduler.")),
 ) -> None:
-    """Run segment → build-model → coarsen → solve → report, skipping up-to-date stages."""
+    """Run segment → build-model → coarsen → solve → report, skipping up-to-date stages.
+
+    A cohort (`subjects:`) or a parameter study (`study:`) runs its cases in parallel on Dask.
+    """
     from .pipeline import run_pipeline
 
-    ok = run_pipeline(config, force=force, start=start, until=until)
+    ok = run_pipeline(config, force=force, start=start, until=until, workers=workers, scheduler=scheduler)
     if not ok:
         raise typer.Exit(1)
 

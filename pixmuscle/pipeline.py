@@ -1,4 +1,4 @@
-"""The whole pipeline: root config, stage chaining, skip/resume, cohorts.
+"""The whole pipeline: root config → cases → a runner → per-case reports, cohort and study pages.
 
 Root YAML keys (all optional except what the chosen stages need)::
 
@@ -13,15 +13,30 @@ Root YAML keys (all optional except what the chosen stages need)::
     report: {...}            # pixmuscle.report.config.ReportConfig
     subjects:                # optional cohort: each entry = name + section overrides (deep-merged)
       - {name: young, build_model: {labels: young_labels.nii.gz}}
+    study:                   # optional parameter study (pixmuscle.study): every combination × subject
+      vary: {solve.materials.muscle.sigma_max: [20, 25, 30]}
+    execution:               # optional: where the cases run (command-line options override it)
+      scheduler: tcp://host:8786   # an existing Dask cluster
+      workers: 4                   # or a local cluster of 4 worker processes (0: in this process)
 
-A stage is skipped when its output exists, has the right schema, and its provenance records the
-same config-section hash and the same SHA-256 for every input file (``--force`` redoes it).
+A *case* is one subject with one combination of the study's values. Its stages are described by
+:func:`pixmuscle.plan.plan_case` and executed by :mod:`pixmuscle.runners.serial` (in this process)
+or :mod:`pixmuscle.runners.dask` (worker processes of a Dask cluster). Folders::
+
+    <output_dir>/                    single subject, no study: every file here
+    <output_dir>/<subject>/          cohort: one folder per subject, cohort.html beside them
+    <output_dir>/[<subject>/]<case>/ study: results and report of each case; the stages the study
+                                     does not vary (e.g. segmentation, model) stay one level up and
+                                     are shared by the subject's cases; study.html at the top
+
+Re-running skips every stage whose output is up to date (see :mod:`pixmuscle.plan`).
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
+import difflib
 import importlib
 import json
 import logging
@@ -30,11 +45,10 @@ from typing import Any
 
 from .config import parse_section, read_yaml
 from .errors import InputError, PixmuscleError
-from .store import config_hash, sha256_file
+from .plan import STAGES, plan_case, results_paths, stage_range, up_to_date  # noqa: F401  (re-exported)
+from .study import Study, parse_study, set_key
 
 _LOG = logging.getLogger("pixmuscle.pipeline")
-
-STAGES = ("segment", "build-model", "coarsen", "solve", "report")
 
 #: config section → (module, dataclass name)
 SECTIONS = {
@@ -44,12 +58,21 @@ SECTIONS = {
     "solve": ("pixmuscle.mechanics.config", "SolveConfig"),
     "report": ("pixmuscle.report.config", "ReportConfig"),
 }
-_ROOT_KEYS = {"title", "synthetic", "output_dir", "models", "subjects", *SECTIONS}
+_ROOT_KEYS = {"title", "synthetic", "output_dir", "models", "subjects", "study", "execution", *SECTIONS}
+#: keys a subject entry may override (besides its name)
+_SUBJECT_KEYS = _ROOT_KEYS - {"subjects", "output_dir", "study", "execution"}
+#: folder of the per-combination cohort pages of a study (not allowed as a subject name)
+STUDY_COHORTS = "study_cohorts"
 
 
 @dataclasses.dataclass(frozen=True)
 class PipelineConfig:
-    """One subject's validated configuration (sections are None when absent)."""
+    """One case's validated configuration (sections are None when absent).
+
+    ``name`` is unique within a run: the subject name, followed by ``/<case>`` in a study.
+    ``shared_dir`` (studies only) holds the stages the study does not vary; ``params`` the
+    (key, value) pairs of the study combination.
+    """
 
     name: str
     title: str
@@ -62,6 +85,63 @@ class PipelineConfig:
     coarsen: Any = None
     solve: Any = None
     report: Any = None
+    subject: str = ""
+    case: str = ""
+    params: tuple = ()
+    shared_dir: Path | None = None
+    study_sections: frozenset = frozenset()
+
+    def varied_sections(self) -> frozenset:
+        """Config sections a study varies, plus every section downstream of the first of them."""
+        if not self.study_sections:
+            return frozenset()
+        order = list(SECTIONS)
+        first = min(order.index(s) for s in self.study_sections)
+        return frozenset(order[first:])
+
+
+@dataclasses.dataclass(frozen=True)
+class SubjectError:
+    """A case whose configuration could not be validated."""
+
+    name: str
+    error: str
+    output_dir: Path
+    subject: str = ""
+    case: str = ""
+    params: tuple = ()
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Everything one ``pixmuscle run`` does: the cases, the study, where to run them.
+
+    Attributes
+    ----------
+    path : Path
+        The YAML file.
+    root_dir : Path
+        Top output folder (cohort and study pages go here).
+    cases : list of PipelineConfig or SubjectError
+    subjects : tuple of str
+        Subject names in config order (one entry, the config stem, for a single subject).
+    cohort : bool
+        True when the config has a ``subjects`` list.
+    study : Study or None
+    scheduler : str or None
+        ``execution.scheduler`` (address of an existing Dask scheduler).
+    workers : int or None
+        ``execution.workers``.
+    """
+
+    path: Path
+    root_dir: Path
+    cases: list
+    subjects: tuple
+    cohort: bool
+    study: Study | None = None
+    scheduler: str | None = None
+    workers: int | None = None
 
 
 def _section_class(name: str):
@@ -82,7 +162,7 @@ def _deep_merge(base: dict, over: dict) -> dict:
     return out
 
 
-def _parse_subject(raw: dict, name: str, where: str, base_dir: Path, default_out: Path) -> PipelineConfig:
+def _parse_case(raw: dict, name: str, where: str, base_dir: Path, out_dir: Path, **extra) -> PipelineConfig:
     models = raw.get("models", None)
     if models is None:
         coarsen_on = raw.get("coarsen") is not None and (raw.get("coarsen") or {}).get("enabled", True)
@@ -97,265 +177,247 @@ def _parse_subject(raw: dict, name: str, where: str, base_dir: Path, default_out
     for sec in SECTIONS:
         if sec in raw:
             sections[sec] = parse_section(_section_class(sec), raw[sec], f"{where}{sec}", base_dir)
-    out = raw.get("output_dir")
-    out_dir = (base_dir / out).resolve() if out else default_out
     return PipelineConfig(
-        name=name, title=str(raw.get("title", name)), synthetic=bool(raw.get("synthetic", False)),
-        output_dir=out_dir, models=tuple(models), base_dir=base_dir, **sections,
+        name=name, title=str(raw.get("title", extra.get("subject") or name)), synthetic=bool(raw.get("synthetic", False)),
+        output_dir=out_dir, models=tuple(models), base_dir=base_dir, **sections, **extra,
     )
 
 
-def load_subjects(path: str | Path, *, strict: bool = True) -> list:
-    """Read and validate a pipeline YAML; one entry per subject (one for a single-subject config).
+def _check_subject_name(path: Path, i: int, name: Any, seen: dict) -> str:
+    if not isinstance(name, str) or not name.strip():
+        raise InputError(f"{path}: subjects[{i}]: expected a mapping with a non-empty 'name' string")
+    if "/" in name or "\\" in name or name in (".", "..") or name == STUDY_COHORTS:
+        raise InputError(f"{path}: subjects[{i}].name: {name!r} cannot be a folder name "
+                         f"(no '/', '\\', '.', '..' or '{STUDY_COHORTS}')")
+    if name in seen:
+        raise InputError(f"{path}: subjects[{i}].name: '{name}' is already the name of subjects[{seen[name]}]; "
+                         "subject names must be unique (each names its output folder)")
+    seen[name] = i
+    return name
 
-    With ``strict=False`` a subject whose own section is invalid (a missing file, a bad key) is
-    returned as a :class:`SubjectError` instead of raising, so a cohort can run the others.
+
+def _parse_execution(raw: Any, path: Path) -> tuple[str | None, int | None]:
+    if raw is None:
+        return None, None
+    if not isinstance(raw, dict):
+        raise InputError(f"{path}: execution: expected a mapping with 'scheduler' and/or 'workers'")
+    bad = sorted(set(raw) - {"scheduler", "workers"})
+    if bad:
+        raise InputError(f"{path}: execution.{bad[0]}: unknown key; expected 'scheduler' or 'workers'")
+    sched, workers = raw.get("scheduler"), raw.get("workers")
+    if sched is not None and not isinstance(sched, str):
+        raise InputError(f"{path}: execution.scheduler: expected an address such as tcp://host:8786, got {sched!r}")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
+        raise InputError(f"{path}: execution.workers: expected a whole number >= 0, got {workers!r}")
+    return sched, workers
+
+
+def load_run(path: str | Path, *, strict: bool = True) -> RunConfig:
+    """Read and validate a pipeline YAML into its cases.
+
+    With ``strict=False`` a case whose own section is invalid (a missing file, a bad key) is
+    returned as a :class:`SubjectError` instead of raising, so the other cases can run. Errors
+    of the file as a whole (unknown top-level key, duplicate subject names, a malformed study)
+    always raise.
     """
     path = Path(path)
     raw = read_yaml(path)
     unknown = sorted(set(raw) - _ROOT_KEYS)
     if unknown:
-        import difflib
-
         close = difflib.get_close_matches(unknown[0], sorted(_ROOT_KEYS), n=1)
         hint = f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(sorted(_ROOT_KEYS))}"
         raise InputError(f"{path}: {unknown[0]}: unknown top-level key{hint}")
     base_dir = path.parent.resolve()
-    default_out = (base_dir / raw["output_dir"]).resolve() if raw.get("output_dir") else (Path.cwd() / "out" / path.stem).resolve()
+    root = (base_dir / raw["output_dir"]).resolve() if raw.get("output_dir") else (Path.cwd() / "out" / path.stem).resolve()
+    study = parse_study(raw.get("study"), set(SECTIONS), f"{path}: study")
+    scheduler, workers = _parse_execution(raw.get("execution"), path)
+    common = {k: v for k, v in raw.items() if k in _SUBJECT_KEYS}
     subjects = raw.get("subjects")
-    common = {k: v for k, v in raw.items() if k not in ("subjects", "output_dir")}
     if subjects is None:
-        return [_parse_subject(raw, path.stem, "", base_dir, default_out)]
-    if not isinstance(subjects, list) or not subjects:
-        raise InputError(f"{path}: subjects: expected a non-empty list of {{name: ..., <section overrides>}}")
-    out = []
-    for i, s in enumerate(subjects):
-        if not isinstance(s, dict) or not isinstance(s.get("name"), str):
-            raise InputError(f"{path}: subjects[{i}]: expected a mapping with a 'name' string")
-        try:
-            bad = sorted(set(s) - (_ROOT_KEYS - {"subjects", "output_dir"}) - {"name"})
-            if bad:
-                raise InputError(f"{path}: subjects[{i}].{bad[0]}: unknown key")
-            merged = _deep_merge(common, {k: v for k, v in s.items() if k != "name"})
-            out.append(_parse_subject(merged, s["name"], f"subjects[{i}].", base_dir, default_out / s["name"]))
-        except InputError as exc:
-            if strict:
-                raise
-            out.append(SubjectError(s["name"], str(exc), default_out / s["name"]))
-    return out
+        entries = [(path.stem, {}, "", root)]
+    else:
+        if not isinstance(subjects, list) or not subjects:
+            raise InputError(f"{path}: subjects: expected a non-empty list of {{name: ..., <section overrides>}}")
+        seen: dict = {}
+        entries = []
+        for i, s in enumerate(subjects):
+            if not isinstance(s, dict):
+                raise InputError(f"{path}: subjects[{i}]: expected a mapping with a 'name' string")
+            name = _check_subject_name(path, i, s.get("name"), seen)
+            entries.append((name, s, f"subjects[{i}].", root / name))
+    combos = [((), "")] if study is None else [
+        (tuple(zip(study.keys, vals, strict=True)), cname) for vals, cname in zip(study.cases, study.names, strict=True)]
+    cases = []
+    folders: dict[Path, str] = {}
+    for name, s, where, subj_dir in entries:
+        bad = sorted(set(s) - _SUBJECT_KEYS - {"name"})
+        for params, cname in combos:
+            case_name = f"{name}/{cname}" if cname else name
+            out_dir = subj_dir / cname if cname else subj_dir
+            if out_dir in folders:
+                raise InputError(f"{path}: cases '{folders[out_dir]}' and '{case_name}' write to the same folder "
+                                 f"{out_dir}: duplicate case folder")
+            folders[out_dir] = case_name
+            info = {"subject": name, "case": cname, "params": params}
+            try:
+                if bad:
+                    raise InputError(f"{path}: {where}{bad[0]}: unknown key")
+                merged = _deep_merge(common, {k: v for k, v in s.items() if k != "name"})
+                for key, value in params:
+                    merged = set_key(merged, key, value, f"{path}: study.vary")
+                extra = dict(info, shared_dir=subj_dir if study else None,
+                             study_sections=study.sections if study else frozenset())
+                cases.append(_parse_case(merged, case_name, where, base_dir, out_dir, **extra))
+            except InputError as exc:
+                if strict:
+                    raise
+                msg = f"{exc} (study case {cname})" if cname else str(exc)
+                cases.append(SubjectError(case_name, msg, out_dir, **info))
+    return RunConfig(path, root, cases, tuple(e[0] for e in entries), subjects is not None, study, scheduler, workers)
 
 
-@dataclasses.dataclass(frozen=True)
-class SubjectError:
-    """A cohort subject whose configuration could not be validated."""
-
-    name: str
-    error: str
-    output_dir: Path
+def load_subjects(path: str | Path, *, strict: bool = True) -> list:
+    """Validated cases of a pipeline YAML (one per subject and study combination); see :func:`load_run`."""
+    return load_run(path, strict=strict).cases
 
 
 def load_config(path: str | Path) -> PipelineConfig:
-    """Validated config of a single-subject YAML (the first subject of a cohort)."""
+    """Validated config of a single-subject YAML (the first case of a cohort or study)."""
     return load_subjects(path)[0]
 
 
-# --------------------------------------------------------------------------- skip logic
-def up_to_date(output: Path, schema: str, version: int, config: Any, inputs: list[Path]) -> bool:
-    """True when ``output`` was made from this config section and these exact input files."""
-    from .store import read_meta
-
-    if not output.exists():
-        return False
-    try:
-        meta = read_meta(output)
-    except OSError:
-        return False
-    if meta["schema"] != schema or meta["schema_version"] != version:
-        return False
-    prov = meta["provenance"]
-    if prov.get("config_sha256") != config_hash(config):
-        return False
-    recorded = prov.get("inputs", {})
-    for p in inputs:
-        if str(p) not in recorded:
-            return False
-    for p, sha in recorded.items():
-        if not Path(p).exists() or sha256_file(p) != sha:
-            return False
-    return True
-
-
-def _stage_range(start: str | None, until: str | None) -> tuple[int, int]:
-    def idx(name, default):
-        if name is None:
-            return default
-        name = name.replace("_", "-")
-        if name not in STAGES:
-            raise InputError(f"unknown stage '{name}': expected one of {', '.join(STAGES)}")
-        return STAGES.index(name)
-
-    a, b = idx(start, 0), idx(until, len(STAGES) - 1)
-    if a > b:
-        raise InputError(f"--from {start} comes after --until {until}")
-    return a, b
-
-
+# --------------------------------------------------------------------------- running
 def run_subject(cfg: PipelineConfig, *, force: bool = False, start: str | None = None,
                 until: str | None = None) -> dict:
-    """Run the stages for one subject; returns a summary dict (paths, report data)."""
-    a, b = _stage_range(start, until)
-    active = set(STAGES[a:b + 1])
-    out = cfg.output_dir
-    out.mkdir(parents=True, exist_ok=True)
-    seg_path, model_path = out / "segmentation.h5", out / "model.h5"
-    coarse_path = out / "model_coarse.h5"
-    summary: dict = {"name": cfg.name, "output_dir": str(out), "skipped": [], "ran": []}
+    """Run the stages of one case in this process; returns its summary (paths, stages run/skipped).
 
-    def note(stage, ran):
-        (summary["ran"] if ran else summary["skipped"]).append(stage)
-        _LOG.info("[%s] %s: %s", cfg.name, stage, "done" if ran else "up to date, skipped")
-
-    # segment ---------------------------------------------------------------------------
-    if cfg.segment is not None and "segment" in active:
-        from .stages.segment import run_segment
-
-        inputs = _existing_paths(cfg.segment)
-        if force or not up_to_date(seg_path, "pixmuscle.segmentation", 1, cfg.segment, inputs):
-            run_segment(cfg.segment, seg_path)
-            note("segment", True)
-        else:
-            note("segment", False)
-
-    # build-model -------------------------------------------------------------------------
-    bm = cfg.build_model
-    if bm is None and cfg.segment is None:
-        raise InputError(f"{cfg.name}: neither a `segment` nor a `build_model` section: nothing to build a model from")
-    if cfg.segment is not None:
-        bm = _with_segmentation(bm, seg_path, cfg)
-    if "build-model" in active:
-        from .stages.build_model import run_build_model
-
-        inputs = _existing_paths(bm)
-        if force or not up_to_date(model_path, "pixmuscle.model", 1, bm, inputs):
-            run_build_model(bm, model_path)
-            note("build-model", True)
-        else:
-            note("build-model", False)
-
-    # coarsen -----------------------------------------------------------------------------
-    if cfg.coarsen is not None and cfg.coarsen.enabled and "coarsen" in active:
-        from .stages.coarsen import run_coarsen
-
-        if force or not up_to_date(coarse_path, "pixmuscle.model", 1, cfg.coarsen, [model_path]):
-            run_coarsen(model_path, cfg.coarsen.factor, coarse_path, config=cfg.coarsen)
-            note("coarsen", True)
-        else:
-            note("coarsen", False)
-
-    # solve -------------------------------------------------------------------------------
-    results = {}
-    for which in cfg.models:
-        mpath = coarse_path if which == "coarse" else model_path
-        rpath = out / f"results_{which}.h5"
-        results[which] = rpath
-        if "solve" in active:
-            if cfg.solve is None:
-                raise InputError(f"{cfg.name}: no `solve` section")
-            from .stages.solve import run_solve
-
-            if force or not up_to_date(rpath, "pixmuscle.results", 1, cfg.solve, [mpath]):
-                run_solve(mpath, cfg.solve, rpath)
-                note(f"solve ({which})", True)
-            else:
-                note(f"solve ({which})", False)
-    summary["results"] = {k: str(v) for k, v in results.items()}
-
-    # report ------------------------------------------------------------------------------
-    if "report" in active:
-        from .stages.report import run_report
-
-        main = results[cfg.models[0]]
-        extra = {"title": cfg.title, "synthetic": cfg.synthetic, "subject": cfg.name,
-                 "compare": {k: str(v) for k, v in results.items()}}
-        index = run_report(main, out / "report", cfg.report, extra=extra)
-        summary["report"] = str(index)
-        note("report", True)
-        _LOG.info("[%s] report: %s", cfg.name, index)
-    return summary
-
-
-def _existing_paths(section: Any) -> list[Path]:
-    """All existing file paths named anywhere in a config section (its inputs)."""
-    found: list[Path] = []
-
-    def walk(v):
-        if dataclasses.is_dataclass(v):
-            for f in dataclasses.fields(v):
-                walk(getattr(v, f.name))
-        elif isinstance(v, dict):
-            for x in v.values():
-                walk(x)
-        elif isinstance(v, (list, tuple)):
-            for x in v:
-                walk(x)
-        elif isinstance(v, Path) and v.is_file():
-            found.append(v)
-
-    walk(section)
-    return found
-
-
-def _with_segmentation(bm: Any, seg_path: Path, cfg: PipelineConfig) -> Any:
-    """The build_model section pointed at this subject's segmentation.h5."""
-    from .model.config import BuildModelConfig
-
-    if bm is None:
-        bm = parse_section(BuildModelConfig, {"segmentation": str(seg_path)}, "build_model", cfg.base_dir)
-    fields = {f.name for f in dataclasses.fields(bm)}
-    changes = {"segmentation": seg_path}
-    if "labels" in fields:
-        changes["labels"] = None
-    return dataclasses.replace(bm, **changes)
-
-
-def run_pipeline(path: str | Path, *, force: bool = False, start: str | None = None,
-                 until: str | None = None) -> bool:
-    """Run every subject of a config; a failing subject is reported and the others go on.
-
-    Returns True when every subject succeeded.
+    Errors propagate (:class:`~pixmuscle.errors.PixmuscleError` for bad input or a failed solve).
     """
-    subjects = load_subjects(path, strict=False)
-    summaries, failures = [], []
-    for i, cfg in enumerate(subjects, 1):
-        if len(subjects) > 1:
-            _LOG.info("subject %d of %d: %s", i, len(subjects), cfg.name)
-        if isinstance(cfg, SubjectError):
-            _LOG.error("subject %s: invalid configuration: %s", cfg.name, cfg.error)
-            failures.append({"name": cfg.name, "error": cfg.error})
+    from .runners.serial import run_serial
+
+    outcome = run_serial({cfg.name: plan_case(cfg, start, until)}, force=force, raise_errors=True)[cfg.name]
+    return _case_summary(cfg, outcome)
+
+
+def run_pipeline(path: str | Path, *, force: bool = False, start: str | None = None, until: str | None = None,
+                 workers: int | None = None, scheduler: str | None = None) -> bool:
+    """Run every case of a config; a failing case is reported and the others go on.
+
+    Parameters
+    ----------
+    path : path-like
+        Pipeline YAML.
+    force, start, until
+        As ``pixmuscle run --force --from --until``.
+    workers : int, optional
+        Run on a local Dask cluster of this many worker processes (0: serially in this process).
+        Default: ``execution.workers``, else serial for one case and a local cluster sized to the
+        machine for several.
+    scheduler : str, optional
+        Address of an existing Dask scheduler (``tcp://host:port``); default ``execution.scheduler``.
+
+    Returns
+    -------
+    bool
+        True when every case succeeded. A single-case run raises its error instead.
+    """
+    from .runners import Progress, choose_runner
+
+    run = load_run(path, strict=False)
+    cases = run.cases
+    plans, failures = {}, {}
+    for c in cases:
+        if isinstance(c, SubjectError):
+            failures[c.name] = c.error
             continue
         try:
-            summaries.append(run_subject(cfg, force=force, start=start, until=until))
-        except PixmuscleError as exc:
-            if len(subjects) == 1:
+            plans[c.name] = plan_case(c, start, until)
+        except InputError as exc:
+            if len(cases) == 1:
                 raise
-            _LOG.error("subject %s failed: %s", cfg.name, exc)
-            failures.append({"name": cfg.name, "error": str(exc)})
-        except Exception as exc:  # a bug in one subject must not lose the others
-            if len(subjects) == 1:
-                raise
-            _LOG.exception("subject %s failed with an unexpected error", cfg.name)
-            failures.append({"name": cfg.name, "error": f"{type(exc).__name__}: {exc}"})
-    if len(subjects) > 1:
-        cohort_dir = subjects[0].output_dir.parent
-        _write_cohort(cohort_dir, summaries, failures)
+            failures[c.name] = str(exc)
+    for name, err in failures.items():
+        _LOG.error("%s: invalid configuration: %s", name, err)
+    progress = Progress([c.name for c in cases if c.name in plans])
+    runner = choose_runner(len(plans), workers=workers if workers is not None else run.workers,
+                           scheduler=scheduler or run.scheduler)
+    outcomes = runner(plans, force=force, progress=progress, raise_errors=len(cases) == 1)
+    summaries = []
+    for c in cases:
+        if c.name in failures:
+            continue
+        o = outcomes[c.name]
+        if o.error is not None:
+            failures[c.name] = o.error
+        else:
+            summaries.append(_case_summary(c, o))
+    progress.finish()
+    _write_summaries(run, summaries, failures)
     return not failures
 
 
-def _write_cohort(cohort_dir: Path, summaries: list[dict], failures: list[dict]) -> None:
-    cohort_dir.mkdir(parents=True, exist_ok=True)
-    (cohort_dir / "cohort_status.json").write_text(json.dumps({"ok": summaries, "failed": failures}, indent=2))
-    try:
-        from .report.cohort import cohort_summary
-    except ModuleNotFoundError:
+def _case_summary(cfg: PipelineConfig, outcome) -> dict:
+    results = results_paths(cfg)
+    summary = {"name": cfg.name, "subject": cfg.subject or cfg.name, "case": cfg.case,
+               "params": {k: v for k, v in cfg.params}, "output_dir": str(cfg.output_dir),
+               "ran": list(outcome.ran), "skipped": list(outcome.skipped),
+               "results": {k: str(v) for k, v in results.items()}}
+    report_dir = cfg.output_dir / "report"
+    for name in ("index.html", "summary.json"):
+        if "report" in outcome.ran and (report_dir / name).exists():
+            summary["report"] = str(report_dir / name)
+            break
+    return summary
+
+
+def _report_summary(s: dict) -> dict | None:
+    """The report summary of a finished case: its summary.json, else computed from its results."""
+    if s.get("report"):
+        js = Path(s["report"]).with_name("summary.json")
+        if js.exists():
+            out = json.loads(js.read_text())
+            out["label"] = s["subject"]
+            return out
+    res = next(iter(s.get("results", {}).values()), None)
+    if res and Path(res).exists():
+        from .stages.report import summarize_results
+
+        return summarize_results(res, extra={"subject": s["subject"]})
+    return None
+
+
+def _write_summaries(run: RunConfig, summaries: list[dict], failures: dict[str, str]) -> None:
+    """cohort_status.json, the cohort page(s) and the study page of a run."""
+    if not run.cohort and run.study is None:
         return
-    cohort_summary([s for s in summaries if "results" in s], cohort_dir, failures=failures)
+    root = run.root_dir
+    root.mkdir(parents=True, exist_ok=True)
+    fail_list = [{"name": n, "error": e} for n, e in failures.items()]
+    (root / "cohort_status.json").write_text(json.dumps({"ok": summaries, "failed": fail_list}, indent=2, default=str))
+    resolved = [(s, _report_summary(s)) for s in summaries]
+    from .report.cohort import cohort_summary
+
+    if run.study is None:
+        cohort_summary([r for _, r in resolved if r is not None], root, failures=fail_list)
+        return
+    from .report.study import study_summary
+
+    rows = []
+    for c in run.cases:
+        found = next(((s, r) for s, r in resolved if s["name"] == c.name), None)
+        rows.append({"subject": c.subject, "case": c.case, "params": dict(c.params),
+                     "summary": found[1] if found else None, "error": failures.get(c.name),
+                     "output_dir": str(c.output_dir)})
+    cohort_pages = {}
+    if run.cohort:
+        for cname in run.study.names:
+            sums = [r["summary"] for r in rows if r["case"] == cname and r["summary"] is not None]
+            fails = [{"name": r["subject"], "error": r["error"]} for r in rows if r["case"] == cname and r["error"]]
+            if sums or fails:
+                cohort_pages[cname] = str(cohort_summary(sums, root / STUDY_COHORTS / cname, failures=fails,
+                                                         title=f"Cohort comparison — {cname}"))
+    study_summary(rows, list(run.study.keys), root, subjects=list(run.subjects), cohort_pages=cohort_pages)
+
+
+__all__ = ["PipelineConfig", "SubjectError", "RunConfig", "load_run", "load_subjects", "load_config",
+           "run_subject", "run_pipeline", "PixmuscleError"]

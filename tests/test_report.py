@@ -21,7 +21,7 @@ from pixmuscle.report import ReportConfig, plot_force_activation, tissue_table
 from pixmuscle.report.cohort import cohort_summary
 from pixmuscle.report.fields import rotate_voigt
 from pixmuscle.report.slices import plane_image
-from pixmuscle.stages.report import make_report, run_report
+from pixmuscle.stages.report import make_report, run_report, summarize_results
 
 
 def _csv(path):
@@ -307,7 +307,7 @@ def test_cohort_summary(tmp_path):
     cfg = ReportConfig(vtu=False, slices=False, dpi=40)
     s_young = make_report(young.path, tmp_path / "ry", cfg, extra={"subject": "young"})
     idx_old = run_report(old.path, tmp_path / "ro", cfg)
-    entries = [s_young, {"name": "old", "report": str(idx_old)}, {"name": "old-again", "results": {"coarse": str(old.path)}}]
+    entries = [s_young, {"name": "old", "report": str(idx_old)}, summarize_results(old.path, extra={"subject": "old-again"})]
     page = cohort_summary(entries, tmp_path / "cohort", failures=[{"name": "broken", "error": "segmentation failed"}])
     header, rows = _csv(tmp_path / "cohort" / "cohort.csv")
     assert [r[0] for r in rows] == ["young", "old", "old-again"]

@@ -34,10 +34,11 @@ QUANTITIES = (
 def resolve_summary(entry: Mapping[str, Any], where: str = "report") -> dict:
     """The report summary of one cohort entry.
 
-    An entry is either a summary returned by :func:`pixmuscle.stages.report.make_report`, or a
-    pipeline subject summary with ``report`` (path of index.html or of the report folder, next to
-    which ``summary.json`` lies) or ``results`` (results.h5 path, or a mapping model → path whose
-    first entry is used). ``name`` (if present) becomes the label.
+    An entry is either a summary returned by :func:`pixmuscle.stages.report.make_report` (or
+    read from a report's ``summary.json``), or a mapping with ``report``: the path of a report's
+    ``index.html`` or folder, next to which ``summary.json`` lies. ``name`` (if present) becomes
+    the label. Nothing is computed here: a results file without a report is summarised by the
+    caller (the pipeline) first.
     """
     if not isinstance(entry, Mapping):
         raise InputError(f"{where}: expected a mapping (report summary or pipeline summary), got {type(entry).__name__}")
@@ -49,14 +50,8 @@ def resolve_summary(entry: Mapping[str, Any], where: str = "report") -> dict:
         if not js.exists():
             raise InputError(f"{where}: report summary {js} not found (run the report stage first)")
         s = json.loads(js.read_text())
-    elif entry.get("results"):
-        from ..stages.report import summarize_results
-
-        res = entry["results"]
-        path = next(iter(res.values())) if isinstance(res, Mapping) else res
-        s = summarize_results(path, extra={"subject": entry.get("name")} if entry.get("name") else None)
     else:
-        raise InputError(f"{where}: has neither report data (volumes_cm3, F_max_N), nor 'report', nor 'results'")
+        raise InputError(f"{where}: has neither report data (volumes_cm3, F_max_N) nor a 'report' path")
     if entry.get("name"):
         s["label"] = str(entry["name"])
     return s

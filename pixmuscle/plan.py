@@ -1,0 +1,248 @@
+"""The pipeline as data: each case is a chain of :class:`Stage` descriptions that a runner executes.
+
+A stage names the function that does the work (``module:function``, imported only when the stage
+runs), its keyword arguments, the file it writes with that file's schema and version, the config
+section that produced it and the files it reads. :func:`plan_case` turns one validated case
+configuration into that chain; :func:`execute_stage` runs one stage, or skips it when its output is
+up to date. The runners (:mod:`pixmuscle.runners.serial`, :mod:`pixmuscle.runners.dask`) only decide
+where and in which order stages execute; nothing here knows about them.
+
+A stage is skipped when its output exists, has the right schema and version, and its provenance
+records the same config-section hash and the same SHA-256 for every input file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from .config import parse_section
+from .errors import InputError
+from .store import config_hash, sha256_file
+
+#: the CLI stages in pipeline order
+STAGES = ("segment", "build-model", "coarsen", "solve", "report")
+
+#: stage kind → (schema, version) of the file it writes (None: not an HDF5 stage file, always runs)
+SCHEMAS = {
+    "segment": ("pixmuscle.segmentation", 1),
+    "build-model": ("pixmuscle.model", 1),
+    "coarsen": ("pixmuscle.model", 1),
+    "solve": ("pixmuscle.results", 1),
+    "report": None,
+}
+
+#: stage kind → config section it depends on
+SECTION_OF = {"segment": "segment", "build-model": "build_model", "coarsen": "coarsen", "solve": "solve",
+              "report": "report"}
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """One step of a case: what runs, what it reads and what it writes.
+
+    Attributes
+    ----------
+    kind : str
+        One of :data:`STAGES`.
+    label : str
+        Name shown in progress and summaries (``"solve (coarse)"`` when several models are solved).
+    action : str
+        ``"module:function"`` called as ``function(**kwargs)``.
+    kwargs : dict
+        Keyword arguments of ``action`` (plain, picklable data: config dataclasses and paths).
+    output : Path
+        The file the stage writes.
+    config : object
+        The config section recorded in (and compared with) the output's provenance.
+    inputs : tuple of Path
+        Files the stage reads (config inputs and upstream outputs); those that exist when the
+        stage runs must be recorded in the output's provenance for it to be skipped.
+    """
+
+    kind: str
+    label: str
+    action: str
+    kwargs: dict
+    output: Path
+    config: Any = None
+    inputs: tuple = ()
+
+    @property
+    def schema(self) -> tuple[str, int] | None:
+        return SCHEMAS[self.kind]
+
+
+def up_to_date(output: Path, schema: str, version: int, config: Any, inputs: list[Path]) -> bool:
+    """True when ``output`` was made from this config section and these exact input files."""
+    from .store import read_meta
+
+    if not output.exists():
+        return False
+    try:
+        meta = read_meta(output)
+    except OSError:
+        return False
+    if meta["schema"] != schema or meta["schema_version"] != version:
+        return False
+    prov = meta["provenance"]
+    if prov.get("config_sha256") != config_hash(config):
+        return False
+    recorded = prov.get("inputs", {})
+    for p in inputs:
+        if str(p) not in recorded:
+            return False
+    for p, sha in recorded.items():
+        if not Path(p).exists() or sha256_file(p) != sha:
+            return False
+    return True
+
+
+def is_up_to_date(stage: Stage) -> bool:
+    """True when ``stage`` would be skipped (its output matches its config and inputs)."""
+    if stage.schema is None:
+        return False
+    schema, version = stage.schema
+    return up_to_date(stage.output, schema, version, stage.config, [p for p in stage.inputs if p.is_file()])
+
+
+def execute_stage(stage: Stage, force: bool = False) -> str:
+    """Run one stage unless its output is up to date.
+
+    Returns
+    -------
+    str
+        ``"ran"`` or ``"skipped"``.
+    """
+    if not force and is_up_to_date(stage):
+        return "skipped"
+    module, func = stage.action.split(":")
+    stage.output.parent.mkdir(parents=True, exist_ok=True)
+    getattr(importlib.import_module(module), func)(**stage.kwargs)
+    return "ran"
+
+
+def stage_range(start: str | None, until: str | None) -> tuple[int, int]:
+    """Indices into :data:`STAGES` of ``--from`` / ``--until`` (inclusive)."""
+    def idx(name, default):
+        if name is None:
+            return default
+        name = name.replace("_", "-")
+        if name not in STAGES:
+            raise InputError(f"unknown stage '{name}': expected one of {', '.join(STAGES)}")
+        return STAGES.index(name)
+
+    a, b = idx(start, 0), idx(until, len(STAGES) - 1)
+    if a > b:
+        raise InputError(f"--from {start} comes after --until {until}")
+    return a, b
+
+
+def config_paths(section: Any) -> tuple[Path, ...]:
+    """Every path named anywhere in a config section (its input files, existing or not)."""
+    found: list[Path] = []
+
+    def walk(v):
+        if dataclasses.is_dataclass(v):
+            for f in dataclasses.fields(v):
+                walk(getattr(v, f.name))
+        elif isinstance(v, Mapping):
+            for x in v.values():
+                walk(x)
+        elif isinstance(v, (list, tuple)):
+            for x in v:
+                walk(x)
+        elif isinstance(v, Path):
+            found.append(v)
+
+    walk(section)
+    return tuple(found)
+
+
+def _with_segmentation(bm: Any, seg_path: Path, base_dir: Path) -> Any:
+    """The build_model section pointed at this subject's segmentation.h5."""
+    from .model.config import BuildModelConfig
+
+    if bm is None:
+        bm = parse_section(BuildModelConfig, {"segmentation": str(seg_path)}, "build_model", base_dir)
+    fields = {f.name for f in dataclasses.fields(bm)}
+    changes = {"segmentation": seg_path}
+    if "labels" in fields:
+        changes["labels"] = None
+    return dataclasses.replace(bm, **changes)
+
+
+def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> list[Stage]:
+    """The chain of stages of one case, in execution order.
+
+    Parameters
+    ----------
+    cfg : pixmuscle.pipeline.PipelineConfig
+        One validated case (a subject, or a subject × study combination). Stages whose config
+        sections the study does not vary write into ``cfg.shared_dir`` (shared by the cases of
+        that subject), the others into ``cfg.output_dir``.
+    start, until : str, optional
+        First and last stage kind (``--from`` / ``--until``).
+
+    Returns
+    -------
+    list of Stage
+    """
+    a, b = stage_range(start, until)
+    active = set(STAGES[a:b + 1])
+    shared = cfg.shared_dir or cfg.output_dir
+
+    def folder(kind: str) -> Path:
+        return cfg.output_dir if SECTION_OF[kind] in cfg.varied_sections() else shared
+
+    seg_path = folder("segment") / "segmentation.h5"
+    model_path = folder("build-model") / "model.h5"
+    coarse_path = folder("coarsen") / "model_coarse.h5"
+    stages: list[Stage] = []
+
+    if cfg.segment is not None and "segment" in active:
+        stages.append(Stage("segment", "segment", "pixmuscle.stages.segment:run_segment",
+                            {"cfg": cfg.segment, "out_path": seg_path}, seg_path, cfg.segment,
+                            config_paths(cfg.segment)))
+    bm = cfg.build_model
+    if bm is None and cfg.segment is None:
+        raise InputError(f"{cfg.name}: neither a `segment` nor a `build_model` section: nothing to build a model from")
+    if cfg.segment is not None:
+        bm = _with_segmentation(bm, seg_path, cfg.base_dir)
+    if "build-model" in active:
+        stages.append(Stage("build-model", "build-model", "pixmuscle.stages.build_model:run_build_model",
+                            {"cfg": bm, "out_path": model_path}, model_path, bm, config_paths(bm)))
+    if cfg.coarsen is not None and cfg.coarsen.enabled and "coarsen" in active:
+        stages.append(Stage("coarsen", "coarsen", "pixmuscle.stages.coarsen:run_coarsen",
+                            {"model_path": model_path, "factor": cfg.coarsen.factor, "out_path": coarse_path,
+                             "config": cfg.coarsen}, coarse_path, cfg.coarsen, (model_path,)))
+    results = {}
+    for which in cfg.models:
+        mpath = coarse_path if which == "coarse" else model_path
+        rpath = cfg.output_dir / f"results_{which}.h5"
+        results[which] = rpath
+        if "solve" in active:
+            if cfg.solve is None:
+                raise InputError(f"{cfg.name}: no `solve` section")
+            stages.append(Stage("solve", f"solve ({which})", "pixmuscle.stages.solve:run_solve",
+                                {"model_path": mpath, "cfg": cfg.solve, "out_path": rpath}, rpath, cfg.solve,
+                                (mpath,)))
+    if "report" in active:
+        main = results[cfg.models[0]]
+        extra = {"title": cfg.title, "synthetic": cfg.synthetic, "subject": cfg.subject or cfg.name,
+                 "compare": {k: str(v) for k, v in results.items()}}
+        if cfg.params:
+            extra["study"] = {k: v for k, v in cfg.params}
+        out = cfg.output_dir / "report"
+        stages.append(Stage("report", "report", "pixmuscle.stages.report:run_report",
+                            {"results_path": main, "outdir": out, "cfg": cfg.report, "extra": extra},
+                            out / "index.html", cfg.report, tuple(results.values())))
+    return stages
+
+
+def results_paths(cfg: Any) -> dict[str, Path]:
+    """model name → results file of a case (whether or not it exists yet)."""
+    return {which: cfg.output_dir / f"results_{which}.h5" for which in cfg.models}

@@ -1,0 +1,173 @@
+"""Dask runner: each case is a chain of stage tasks on a ``dask.distributed`` cluster.
+
+Independent chains run in parallel on the workers; a stage shared by several cases is one task
+that their chains depend on. Either a local cluster of ``workers`` processes is started for the
+run (one thread each, with numba/OpenMP/MKL/OpenBLAS limited to cores ÷ workers threads so that
+the workers do not oversubscribe the machine), or ``scheduler`` names an existing cluster
+(``dask scheduler`` + ``dask worker`` processes, dask-jobqueue, ...).
+
+A stage that raises fails its case (the message is kept) and the rest of that chain is dropped;
+the other cases go on. A worker process that dies while running a stage (killed, out of memory) is
+replaced and the stage is retried once on the local cluster; a second death fails the case with a
+message saying so. On an existing cluster the number of retries is the scheduler's
+``distributed.scheduler.allowed-failures`` (set it to 1 there for the same behaviour).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+from ..plan import Stage, execute_stage
+from . import CaseOutcome, Progress, available_cores, error_message
+
+_LOG = logging.getLogger("pixmuscle.runners")
+
+#: event topic of stage starts (worker → client)
+TOPIC = "pixmuscle-stage"
+#: environment variables that cap the threads of the numerical libraries in a worker process
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS",
+                    "VECLIB_MAXIMUM_THREADS")
+
+
+def thread_environment(n_workers: int, cores: int | None = None) -> dict[str, str]:
+    """Environment of a worker process so that ``n_workers`` of them share ``cores`` cores."""
+    per = max(1, (cores or available_cores()) // max(1, n_workers))
+    return {v: str(per) for v in THREAD_VARIABLES}
+
+
+@contextlib.contextmanager
+def local_cluster(n_workers: int) -> Iterator[str]:
+    """A ``LocalCluster`` of ``n_workers`` processes (one thread each) for one run; yields its address.
+
+    Killed workers are restarted by their nanny and a task is retried once after a worker death
+    (``allowed-failures: 1``). No dashboard is started.
+    """
+    import dask
+    from distributed import LocalCluster
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+        cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                               dashboard_address=None, env=thread_environment(n_workers))
+    try:
+        yield cluster.scheduler_address
+    finally:
+        cluster.close()
+
+
+def _stage_task(stage: Stage, force: bool, case: str, *upstream: str) -> str:
+    """Worker side: announce the stage, run it (or skip it); ``upstream`` only orders the chain."""
+    try:
+        from distributed import get_worker
+
+        get_worker().log_event(TOPIC, {"case": case, "stage": stage.label})
+    except ValueError:  # not on a worker (e.g. a synchronous scheduler in tests)
+        pass
+    return execute_stage(stage, force)
+
+
+def run_dask(plans: dict[str, list[Stage]], *, force: bool = False, progress: Progress | None = None,
+             raise_errors: bool = False, workers: int | None = None, scheduler: str | None = None
+             ) -> dict[str, CaseOutcome]:
+    """Run the cases on a Dask cluster.
+
+    Parameters
+    ----------
+    plans : dict
+        Case name → its stages in order (:func:`pixmuscle.plan.plan_case`).
+    force : bool
+        Run stages even when their outputs are up to date.
+    progress : Progress, optional
+    raise_errors : bool
+        Re-raise the first case's error (single-case runs).
+    workers : int, optional
+        Size of the local cluster started for this run (ignored with ``scheduler``).
+    scheduler : str, optional
+        Address of an existing scheduler, e.g. ``tcp://10.0.0.5:8786``.
+
+    Returns
+    -------
+    dict
+        Case name → :class:`CaseOutcome`.
+    """
+    progress = progress or Progress(list(plans))
+    if scheduler:
+        return _run_on(scheduler, plans, force, progress, raise_errors)
+    with local_cluster(workers or available_cores()) as address:
+        return _run_on(address, plans, force, progress, raise_errors)
+
+
+def _run_on(address: str, plans, force, progress, raise_errors) -> dict[str, CaseOutcome]:
+    from distributed import Client, as_completed
+    from distributed.client import FutureCancelledError
+
+    from ..errors import InputError
+
+    try:
+        client = Client(address, timeout="30s")
+    except OSError as exc:
+        raise InputError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
+    with client:
+        client.subscribe_topic(TOPIC, lambda event: progress.stage(event[1]["case"], event[1]["stage"]))
+        tag = uuid.uuid4().hex[:8]
+        tasks: dict[Path, object] = {}            # stage output → future (shared stages once)
+        chains: dict[str, list] = {}
+        for name, stages in plans.items():
+            prev: tuple = ()
+            chain = []
+            for i, stage in enumerate(stages):
+                fut = tasks.get(stage.output)
+                if fut is None:
+                    key = f"pixmuscle-{stage.kind}-{tag}-{len(tasks)}"
+                    fut = client.submit(_stage_task, stage, force, name, *prev, key=key, pure=False)
+                    tasks[stage.output] = fut
+                chain.append((stages[i], fut))
+                prev = (fut,)
+            chains[name] = chain
+        t0 = {name: time.monotonic() for name in plans}
+        last = {}
+        for name, chain in chains.items():
+            if chain:
+                last.setdefault(chain[-1][1].key, []).append(name)
+            else:
+                progress.done(name)
+        outcomes = {name: CaseOutcome() for name in plans}
+        ends = {chain[-1][1].key: chain[-1][1] for chain in chains.values() if chain}
+        for fut in as_completed(list(ends.values())):
+            for name in last[fut.key]:
+                out = outcomes[name]
+                for stage, f in chains[name]:
+                    if f.status == "finished":
+                        state = f.result()
+                        (out.ran if state == "ran" else out.skipped).append(stage.label)
+                        progress.stage_done(name, stage.label, state)
+                        continue
+                    try:
+                        exc = f.exception()
+                    except FutureCancelledError as c:
+                        exc = c
+                    if raise_errors and not _is_killed(exc):
+                        raise exc
+                    out.error = _failure(stage, exc)
+                    break
+                out.seconds = time.monotonic() - t0[name]
+                progress.done(name, out.error)
+        client.unsubscribe_topic(TOPIC)
+    return outcomes
+
+
+def _is_killed(exc: BaseException) -> bool:
+    from distributed.scheduler import KilledWorker
+
+    return isinstance(exc, KilledWorker)
+
+
+def _failure(stage: Stage, exc: BaseException) -> str:
+    if _is_killed(exc):
+        return (f"{stage.label}: the worker process running it died (killed, or out of memory) and died again "
+                "when the stage was retried; not retried further")
+    return error_message(stage.label, exc)
