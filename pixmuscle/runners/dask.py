@@ -122,7 +122,7 @@ def _run_on(address: str, plans, force, progress, raise_errors) -> dict[str, Cas
             for i, stage in enumerate(stages):
                 fut = tasks.get(stage.output)
                 if fut is None:
-                    key = f"pixmuscle-{stage.kind}-{tag}-{len(tasks)}"
+                    key = f"{name}:{stage.label}:{tag}-{len(tasks)}"
                     fut = client.submit(_stage_task, stage, force, name, *prev, key=key, pure=False)
                     tasks[stage.output] = fut
                 chain.append((stages[i], fut))

@@ -1,0 +1,175 @@
+"""Cohorts and studies on a real Dask cluster (scheduler + two worker processes on localhost).
+
+The same tiny SYNTHETIC young/old medial-gastrocnemius phantoms as test_pipeline, one load step:
+the Dask run must give the serial run's numbers, a 2 × 2 study the numbers of its four cases run
+one by one, and a worker killed in the middle of a case must be retried (or the case reported)
+while the other cases complete.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy import ndimage as ndi
+
+distributed = pytest.importorskip("distributed")
+
+from pixmuscle.pipeline import load_subjects, run_pipeline, run_subject  # noqa: E402
+from pixmuscle.runners.dask import local_cluster  # noqa: E402
+from pixmuscle.synth import make_mg_phantom, write_phantom  # noqa: E402
+
+
+def _seed(ph) -> list:
+    k = ph.muscle_id.shape[2] // 2
+    dist = ndi.distance_transform_edt(ph.muscle_id[:, :, k] == 1)
+    i, j = np.unravel_index(np.argmax(dist), dist.shape)
+    return (ph.affine @ np.array([i, j, k, 1.0]))[:3].round(3).tolist()
+
+
+@pytest.fixture(scope="module")
+def phantoms(tmp_path_factory):
+    out = tmp_path_factory.mktemp("phantoms")
+    seg = {}
+    for who, seed in (("young", 3), ("old", 4)):
+        ph = make_mg_phantom(who, shape=(40, 28, 3), pixel_cm=0.18, seed=seed)
+        write_phantom(ph, out, who)
+        seg[who] = {"mri": str(out / f"{who}_mri.nii.gz"), "dti_tensor": str(out / f"{who}_dti_tensor.nii.gz"),
+                    "imct_mask": str(out / f"{who}_imct.nii.gz"), "imat_mask": str(out / f"{who}_imat.nii.gz"),
+                    "seeds": {"medial_gastrocnemius": [_seed(ph)]}}
+    return seg
+
+
+def _config(path: Path, out: Path, segs: dict, **extra) -> Path:
+    cfg = {
+        "title": "tiny dask test", "synthetic": True, "output_dir": str(out), "models": ["coarse"],
+        "segment": {"multiphase": {"n_levelsets": 3, "mu": [1.0], "lambdas": [0.02], "fiber_channels": "outer"}},
+        "build_model": {}, "coarsen": {"factor": 2},
+        "solve": {"steps": 1, "activation": {"from": 0.0, "to": 0.5},
+                  "boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]},
+                                          {"nodes": "z_max", "fix": ["x", "y", "z"]}]},
+        "report": {"vtu": False, "slices": False},
+        **extra,
+    }
+    if len(segs) == 1:
+        cfg["segment"].update(next(iter(segs.values())))
+    else:
+        cfg["subjects"] = [{"name": k, "segment": v} for k, v in segs.items()]
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def _rows(path: Path) -> list[dict]:
+    with open(path) as fh:
+        return list(csv.DictReader(fh))
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A real LocalCluster (processes=True, two workers) started the way `--workers 2` starts it."""
+    with local_cluster(2) as address:
+        yield address
+
+
+def test_workers_limit_their_threads(cluster):
+    with distributed.Client(cluster) as client:
+        env = client.run(lambda: {v: os.environ.get(v) for v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS",
+                                                                "NUMBA_NUM_THREADS")})
+    from pixmuscle.runners import available_cores
+
+    want = str(max(1, available_cores() // 2))
+    assert len(env) == 2 and all(set(e.values()) == {want} for e in env.values())
+
+
+def test_cohort_on_dask_equals_serial(phantoms, tmp_path, cluster):
+    serial = _config(tmp_path / "serial.yaml", tmp_path / "serial", phantoms)
+    dask_cfg = _config(tmp_path / "dask.yaml", tmp_path / "dask", phantoms)
+    assert run_pipeline(serial, workers=0)
+    assert run_pipeline(dask_cfg, scheduler=cluster)
+    a, b = _rows(tmp_path / "serial" / "cohort.csv"), _rows(tmp_path / "dask" / "cohort.csv")
+    assert [r["subject"] for r in a] == [r["subject"] for r in b] == ["young", "old"]
+    for col in a[0]:
+        if col in ("subject", "status"):
+            assert [r[col] for r in a] == [r[col] for r in b]
+        else:
+            np.testing.assert_allclose([float(r[col]) for r in b], [float(r[col]) for r in a], rtol=1e-10, atol=0)
+    assert float(a[0]["F_max [N]"]) > 0
+    # resume: nothing but the reports runs again on the cluster
+    assert run_pipeline(dask_cfg, scheduler=cluster)
+    status = json.loads((tmp_path / "dask" / "cohort_status.json").read_text())
+    assert all(s["ran"] == ["report"] for s in status["ok"])
+
+
+def test_study_2x2_equals_one_by_one(phantoms, tmp_path, cluster):
+    young = {"young": phantoms["young"]}
+    vary = {"solve.materials.muscle.sigma_max": [20.0, 30.0], "solve.materials.connective_tissue.C10": [15.0, 60.0]}
+    cfg = _config(tmp_path / "study.yaml", tmp_path / "study", young, study={"vary": vary})
+    assert run_pipeline(cfg, scheduler=cluster)
+    rows = _rows(tmp_path / "study" / "study.csv")
+    assert len(rows) == 4 and (tmp_path / "study" / "study.html").exists()
+    reports = sorted((tmp_path / "study").glob("*/report/index.html"))
+    assert len(reports) == 4
+    # the shared stages ran once, in the subject folder
+    assert (tmp_path / "study" / "model_coarse.h5").exists()
+    for r in rows:
+        sigma, c10 = float(r["solve.materials.muscle.sigma_max"]), float(r["solve.materials.connective_tissue.C10"])
+        one = _config(tmp_path / "one.yaml", tmp_path / f"one_{sigma}_{c10}", young)
+        raw = yaml.safe_load(one.read_text())
+        raw["solve"]["materials"] = {"muscle": {"sigma_max": sigma}, "connective_tissue": {"C10": c10}}
+        one.write_text(yaml.safe_dump(raw))
+        s = run_subject(load_subjects(one)[0])
+        summary = json.loads(Path(s["report"]).with_name("summary.json").read_text())
+        np.testing.assert_allclose(float(r["F_max [N]"]), summary["F_max_N"], rtol=1e-10)
+        np.testing.assert_allclose(float(r["F_max / total volume [N/cm^3]"]),
+                                   summary["force_per_volume_N_per_cm3"], rtol=1e-10)
+    f = {(float(r["solve.materials.muscle.sigma_max"]), float(r["solve.materials.connective_tissue.C10"])):
+         float(r["F_max [N]"]) for r in rows}
+    assert f[30.0, 15.0] > f[20.0, 15.0]      # more fibre stress, more force
+
+
+class KillOnStage(distributed.WorkerPlugin):
+    """Kills the worker process (SIGKILL) when a task whose key contains ``match`` starts executing,
+    at most ``times`` times over all workers (counted with marker files)."""
+
+    name = "pixmuscle-test-killer"
+
+    def __init__(self, marker_dir: str, match: str, times: int):
+        self.marker_dir, self.match, self.times = marker_dir, match, times
+
+    def transition(self, key, start, finish, **kwargs):
+        if finish == "executing" and self.match in str(key):
+            d = Path(self.marker_dir)
+            if len(list(d.glob("kill-*"))) < self.times:
+                (d / f"kill-{len(list(d.glob('kill-*')))}").touch()
+                os.kill(os.getpid(), signal.SIGKILL)
+
+
+@pytest.mark.parametrize("times", [1, 2])
+def test_killed_worker_is_retried_once_then_reported(phantoms, tmp_path, cluster, times):
+    cfg = _config(tmp_path / "kill.yaml", tmp_path / "kill", phantoms)
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    with distributed.Client(cluster) as client:
+        client.register_plugin(KillOnStage(str(marks), "old:solve", times))
+        try:
+            ok = run_pipeline(cfg, scheduler=cluster)
+        finally:
+            client.unregister_worker_plugin(KillOnStage.name)
+            client.wait_for_workers(2, timeout=60)
+    status = json.loads((tmp_path / "kill" / "cohort_status.json").read_text())
+    assert len(list(marks.glob("kill-*"))) == times
+    assert "young" in [s["name"] for s in status["ok"]]
+    if times == 1:   # one death: the solve ran again on a fresh worker and the case is complete
+        assert ok and [s["name"] for s in status["ok"]] == ["young", "old"]
+    else:            # died again on the retry: reported, nothing half-written
+        assert not ok
+        [fail] = status["failed"]
+        assert fail["name"] == "old" and "died" in fail["error"] and "solve" in fail["error"]
+        assert not (tmp_path / "kill" / "old" / "results_coarse.h5").exists()
+        assert "old" in (tmp_path / "kill" / "cohort.html").read_text()
