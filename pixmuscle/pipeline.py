@@ -269,7 +269,7 @@ def load_run(path: str | Path, *, strict: bool = True) -> RunConfig:
                              study_sections=study.sections if study else frozenset())
                 cases.append(_parse_case(merged, case_name, where, base_dir, out_dir, **extra))
             except InputError as exc:
-                if strict:
+                if strict or (subjects is None and study is None):   # a single case: its error is the run's
                     raise
                 msg = f"{exc} (study case {cname})" if cname else str(exc)
                 cases.append(SubjectError(case_name, msg, out_dir, **info))

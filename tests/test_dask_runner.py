@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from scipy import ndimage as ndi
 
 distributed = pytest.importorskip("distributed")
 
@@ -26,41 +25,31 @@ from pixmuscle.runners.dask import local_cluster  # noqa: E402
 from pixmuscle.synth import make_mg_phantom, write_phantom  # noqa: E402
 
 
-def _seed(ph) -> list:
-    k = ph.muscle_id.shape[2] // 2
-    dist = ndi.distance_transform_edt(ph.muscle_id[:, :, k] == 1)
-    i, j = np.unravel_index(np.argmax(dist), dist.shape)
-    return (ph.affine @ np.array([i, j, k, 1.0]))[:3].round(3).tolist()
-
-
 @pytest.fixture(scope="module")
 def phantoms(tmp_path_factory):
+    """Ground-truth labels and fibres of tiny young/old phantoms (the segment stage is tested elsewhere)."""
     out = tmp_path_factory.mktemp("phantoms")
-    seg = {}
+    inputs = {}
     for who, seed in (("young", 3), ("old", 4)):
-        ph = make_mg_phantom(who, shape=(40, 28, 3), pixel_cm=0.18, seed=seed)
-        write_phantom(ph, out, who)
-        seg[who] = {"mri": str(out / f"{who}_mri.nii.gz"), "dti_tensor": str(out / f"{who}_dti_tensor.nii.gz"),
-                    "imct_mask": str(out / f"{who}_imct.nii.gz"), "imat_mask": str(out / f"{who}_imat.nii.gz"),
-                    "seeds": {"medial_gastrocnemius": [_seed(ph)]}}
-    return seg
+        write_phantom(make_mg_phantom(who, shape=(28, 20, 3), pixel_cm=0.25, seed=seed), out, who)
+        inputs[who] = {"labels": str(out / f"{who}_labels.nii.gz"), "fibers": str(out / f"{who}_fibers.nii.gz")}
+    return inputs
 
 
-def _config(path: Path, out: Path, segs: dict, **extra) -> Path:
+def _config(path: Path, out: Path, inputs: dict, **extra) -> Path:
     cfg = {
         "title": "tiny dask test", "synthetic": True, "output_dir": str(out), "models": ["coarse"],
-        "segment": {"multiphase": {"n_levelsets": 3, "mu": [1.0], "lambdas": [0.02], "fiber_channels": "outer"}},
         "build_model": {}, "coarsen": {"factor": 2},
         "solve": {"steps": 1, "activation": {"from": 0.0, "to": 0.5},
                   "boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]},
                                           {"nodes": "z_max", "fix": ["x", "y", "z"]}]},
-        "report": {"vtu": False, "slices": False},
+        "report": {"vtu": False, "slices": False, "dpi": 40},
         **extra,
     }
-    if len(segs) == 1:
-        cfg["segment"].update(next(iter(segs.values())))
+    if len(inputs) == 1:
+        cfg["build_model"] = dict(next(iter(inputs.values())))
     else:
-        cfg["subjects"] = [{"name": k, "segment": v} for k, v in segs.items()]
+        cfg["subjects"] = [{"name": k, "build_model": v} for k, v in inputs.items()]
     path.write_text(yaml.safe_dump(cfg))
     return path
 

@@ -46,9 +46,9 @@ def _hms(seconds: float) -> str:
 class Progress:
     """Case progress as log lines: queued, running, done or failed, and a total with an ETA.
 
-    Thread-safe (the Dask runner reports from the client's event thread). The ETA is the time per
-    finished case so far times the cases left, divided by nothing: cases that run in parallel
-    finish faster, so it is a rate estimate, not a schedule.
+    Thread-safe (the Dask runner reports from the client's event thread). The ETA is the elapsed
+    time divided by the finished cases, times the cases left: a rate estimate that includes the
+    parallelism of the runner, not a schedule.
     """
 
     def __init__(self, names: Sequence[str], logger: logging.Logger = _LOG):
@@ -72,7 +72,7 @@ class Progress:
                 self._started[name] = time.monotonic()
                 if self.many:
                     self._log.info("%s: running", name)
-            self._log.log(logging.DEBUG if self.many else logging.INFO, "[%s] %s ...", name, label)
+            self._log.debug("[%s] %s ...", name, label)
 
     def stage_done(self, name: str, label: str, state: str) -> None:
         """Stage ``label`` of case ``name`` ran (``"ran"``) or was up to date (``"skipped"``)."""

@@ -59,15 +59,25 @@ def local_cluster(n_workers: int) -> Iterator[str]:
         cluster.close()
 
 
-def _stage_task(stage: Stage, force: bool, case: str, *upstream: str) -> str:
-    """Worker side: announce the stage, run it (or skip it); ``upstream`` only orders the chain."""
+def _stage_task(stage: Stage, force: bool, case: str, upstream: list | None = None) -> list:
+    """Worker side: announce the stage, run it (or skip it).
+
+    Returns the (label, "ran" | "skipped") pairs of the chain so far, so that the client needs
+    only the last task of a case. An exception leaves with the stage label attached
+    (``pixmuscle_stage``) so that the client can say which stage failed.
+    """
     try:
         from distributed import get_worker
 
         get_worker().log_event(TOPIC, {"case": case, "stage": stage.label})
-    except ValueError:  # not on a worker (e.g. a synchronous scheduler in tests)
+    except ValueError:  # not on a worker
         pass
-    return execute_stage(stage, force)
+    try:
+        state = execute_stage(stage, force)
+    except Exception as exc:
+        exc.pixmuscle_stage = stage.label
+        raise
+    return [*(upstream or []), (stage.label, state)]
 
 
 def run_dask(plans: dict[str, list[Stage]], *, force: bool = False, progress: Progress | None = None,
@@ -103,7 +113,6 @@ def run_dask(plans: dict[str, list[Stage]], *, force: bool = False, progress: Pr
 
 def _run_on(address: str, plans, force, progress, raise_errors) -> dict[str, CaseOutcome]:
     from distributed import Client, as_completed
-    from distributed.client import FutureCancelledError
 
     from ..errors import InputError
 
@@ -111,51 +120,47 @@ def _run_on(address: str, plans, force, progress, raise_errors) -> dict[str, Cas
         client = Client(address, timeout="30s")
     except OSError as exc:
         raise InputError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
+    outcomes = {name: CaseOutcome() for name in plans}
     with client:
         client.subscribe_topic(TOPIC, lambda event: progress.stage(event[1]["case"], event[1]["stage"]))
         tag = uuid.uuid4().hex[:8]
-        tasks: dict[Path, object] = {}            # stage output → future (shared stages once)
-        chains: dict[str, list] = {}
+        tasks: dict[Path, object] = {}       # stage output → future: a shared stage is one task
+        labels: dict[str, str] = {}          # task key → stage label (to name a killed stage)
+        ends: dict[str, list[str]] = {}      # key of a chain's last task → its cases
+        finals = {}
         for name, stages in plans.items():
-            prev: tuple = ()
-            chain = []
-            for i, stage in enumerate(stages):
-                fut = tasks.get(stage.output)
-                if fut is None:
+            fut = None
+            for stage in stages:
+                nxt = tasks.get(stage.output)
+                if nxt is None:
                     key = f"{name}:{stage.label}:{tag}-{len(tasks)}"
-                    fut = client.submit(_stage_task, stage, force, name, *prev, key=key, pure=False)
-                    tasks[stage.output] = fut
-                chain.append((stages[i], fut))
-                prev = (fut,)
-            chains[name] = chain
-        t0 = {name: time.monotonic() for name in plans}
-        last = {}
-        for name, chain in chains.items():
-            if chain:
-                last.setdefault(chain[-1][1].key, []).append(name)
-            else:
+                    nxt = client.submit(_stage_task, stage, force, name, fut, key=key, pure=False)
+                    tasks[stage.output], labels[key] = nxt, stage.label
+                fut = nxt
+            if fut is None:
                 progress.done(name)
-        outcomes = {name: CaseOutcome() for name in plans}
-        ends = {chain[-1][1].key: chain[-1][1] for chain in chains.values() if chain}
-        for fut in as_completed(list(ends.values())):
-            for name in last[fut.key]:
+                continue
+            ends.setdefault(fut.key, []).append(name)
+            finals[fut.key] = fut
+        tasks.clear()                        # keep only the chain ends: lost intermediates need no recompute
+        t0 = time.monotonic()
+        for fut in as_completed(list(finals.values())):
+            err = None
+            if fut.status == "finished":
+                states = fut.result()
+            else:
+                exc = fut.exception()
+                if raise_errors and not _is_killed(exc):
+                    raise exc
+                err = _failure(exc, labels)
+            for name in ends[fut.key]:
                 out = outcomes[name]
-                for stage, f in chains[name]:
-                    if f.status == "finished":
-                        state = f.result()
-                        (out.ran if state == "ran" else out.skipped).append(stage.label)
-                        progress.stage_done(name, stage.label, state)
-                        continue
-                    try:
-                        exc = f.exception()
-                    except FutureCancelledError as c:
-                        exc = c
-                    if raise_errors and not _is_killed(exc):
-                        raise exc
-                    out.error = _failure(stage, exc)
-                    break
-                out.seconds = time.monotonic() - t0[name]
-                progress.done(name, out.error)
+                if err is None:
+                    for label, state in states:
+                        (out.ran if state == "ran" else out.skipped).append(label)
+                        progress.stage_done(name, label, state)
+                out.error, out.seconds = err, time.monotonic() - t0
+                progress.done(name, err)
         client.unsubscribe_topic(TOPIC)
     return outcomes
 
@@ -166,8 +171,10 @@ def _is_killed(exc: BaseException) -> bool:
     return isinstance(exc, KilledWorker)
 
 
-def _failure(stage: Stage, exc: BaseException) -> str:
+def _failure(exc: BaseException, labels: dict[str, str]) -> str:
+    """One line naming the failed stage: its error, or that its worker died twice."""
     if _is_killed(exc):
-        return (f"{stage.label}: the worker process running it died (killed, or out of memory) and died again "
+        label = labels.get(exc.task, str(exc.task))
+        return (f"{label}: the worker process running it died (killed, or out of memory) and died again "
                 "when the stage was retried; not retried further")
-    return error_message(stage.label, exc)
+    return error_message(getattr(exc, "pixmuscle_stage", "stage"), exc)

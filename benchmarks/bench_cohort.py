@@ -1,0 +1,112 @@
+"""Cohort and study throughput: serial vs a local Dask cluster of two workers.
+
+Cases: ``configs/mg_young_old.yaml`` (the MG young/old cohort: 2 subjects) and
+``configs/mg_young_old_study.yaml`` (the same cohort × a 3 × 3 study of IMCT C10 and σ_max: 18
+cases, segmentation and models shared per subject). Every run is ``--force`` (all stages redone).
+
+* serial: ``pixmuscle run CONFIG --workers 0 --force`` in a child process; peak memory = the
+  child's maximum resident set size.
+* dask: ``run_pipeline(CONFIG, scheduler=...)`` on :func:`pixmuscle.runners.dask.local_cluster`
+  (2 worker processes, exactly what ``--workers 2`` starts); peak memory of each worker process
+  read on the worker (``ru_maxrss``) before the cluster closes.
+
+Run:  .venv/bin/python benchmarks/bench_cohort.py [--part cohort study] [--mode serial dask]
+Each (part, mode) is merged into benchmarks/results/bench_cohort.json; bench_cohort.md is rewritten
+from it with the wall-time ratio serial / dask for every part measured in both modes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+CONFIGS = {"cohort": ROOT / "configs" / "mg_young_old.yaml", "study": ROOT / "configs" / "mg_young_old_study.yaml"}
+
+
+def _maxrss_mb() -> float:
+    """Peak resident set of this process, MB (Linux reports kB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_serial(config: Path) -> dict:
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "pixmuscle.cli", "-q", "run", str(config), "--workers", "0", "--force"],
+                          cwd=ROOT, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+    return {"wall_s": wall, "exit": proc.returncode, "peak_rss_mb": {"process": peak},
+            "stderr_tail": proc.stderr[-2000:] if proc.returncode else ""}
+
+
+def run_dask(config: Path, workers: int = 2) -> dict:
+    from distributed import Client
+
+    from pixmuscle.pipeline import run_pipeline
+    from pixmuscle.runners.dask import local_cluster
+
+    with local_cluster(workers) as address:
+        t0 = time.perf_counter()
+        ok = run_pipeline(config, force=True, scheduler=address)
+        wall = time.perf_counter() - t0
+        with Client(address) as client:
+            peaks = client.run(_maxrss_mb)
+    return {"wall_s": wall, "exit": 0 if ok else 1,
+            "peak_rss_mb": {"client": _maxrss_mb(), **{f"worker {i}": v for i, v in enumerate(peaks.values())}},
+            "workers": workers}
+
+
+def write_md(results: dict, path: Path) -> None:
+    lines = ["## bench_cohort: cohort and study, serial vs `--workers 2`", "",
+             f"Machine: {results['machine']}. **Shared with other agents' jobs while measured** (2 cores, "
+             "several concurrent sessions): wall times include their load.", "",
+             "| part | cases | mode | wall (s) | peak RSS (MB) | command |", "|---|---|---|---|---|---|"]
+    for key, r in sorted(results["runs"].items()):
+        part, mode = key.split(":")
+        peaks = ", ".join(f"{k} {v:.0f}" for k, v in r["peak_rss_mb"].items())
+        lines.append(f"| {part} | {r['cases']} | {mode} | {r['wall_s']:.1f} | {peaks} | `{r['command']}` |")
+    for part in CONFIGS:
+        s, d = results["runs"].get(f"{part}:serial"), results["runs"].get(f"{part}:dask")
+        if s and d:
+            lines.append("")
+            lines.append(f"{part}: wall time serial / dask = {s['wall_s'] / d['wall_s']:.2f} "
+                         f"({s['measured_utc']} and {d['measured_utc']}).")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--part", nargs="*", choices=sorted(CONFIGS), default=sorted(CONFIGS))
+    ap.add_argument("--mode", nargs="*", choices=["serial", "dask"], default=["serial", "dask"])
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    js = args.out / "bench_cohort.json"
+    results = json.loads(js.read_text()) if js.exists() else {"runs": {}}
+    results["machine"] = f"{platform.platform()}, Python {platform.python_version()}, {os.cpu_count()} cores"
+    from pixmuscle.pipeline import load_subjects
+
+    for part in args.part:
+        cfg = CONFIGS[part]
+        n = len(load_subjects(cfg))
+        for mode in args.mode:
+            print(f"== {part} ({n} cases), {mode}", flush=True)
+            r = run_serial(cfg) if mode == "serial" else run_dask(cfg)
+            r.update(cases=n, measured_utc=time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
+                     command=f"python benchmarks/bench_cohort.py --part {part} --mode {mode}")
+            print(json.dumps(r, indent=1), flush=True)
+            results["runs"][f"{part}:{mode}"] = r
+            js.write_text(json.dumps(results, indent=2))
+    write_md(results, args.out / "bench_cohort.md")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
