@@ -1,7 +1,9 @@
 """Command-line interface (typer): a thin layer over :mod:`pixmuscle.stages` and :mod:`pixmuscle.pipeline`.
 
 Every command turns a :class:`~pixmuscle.errors.PixmuscleError` into one line on stderr and exit
-code 2; ``--debug`` shows the traceback instead.
+code 2; ``--debug`` shows the traceback instead. Logs and progress go to stderr; the paths of the
+files a command wrote go to stdout, one per line, so ``$(pixmuscle report results.h5)`` is the
+report's ``index.html``.
 """
 
 from __future__ import annotations
@@ -26,7 +28,14 @@ verify_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Verif
 app.add_typer(verify_app, name="verify")
 
 _STATE = {"debug": False}
-_LOG = logging.getLogger("pixmuscle")
+_LOG = logging.getLogger("pixmuscle.cli")
+
+
+def _out(*paths) -> None:
+    """Print result paths on stdout (one per line; never wrapped)."""
+    for p in paths:
+        sys.stdout.write(f"{p}\n")
+    sys.stdout.flush()
 
 #: which issue delivers each stage module (for the "not available yet" message)
 _PENDING = {
@@ -78,7 +87,9 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _main(
-    verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="More output (-vv for debug)."),
+    verbose: int = typer.Option(0, "--verbose", "-v", count=True, help=(
+        "More log output on stderr: -v the details of every stage (load steps, segmentation), -vv debug "
+        "messages (every Newton iteration) with time and logger name.")),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Only warnings and errors."),
     debug: bool = typer.Option(False, "--debug", help="Show Python tracebacks."),
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version."),
@@ -87,6 +98,12 @@ def _main(
 
     _STATE["debug"] = debug
     setup_logging(-1 if quiet else verbose)
+
+
+def _synthetic(config: Path) -> bool:
+    from .pipeline import load_config
+
+    return bool(load_config(config).synthetic)
 
 
 def _section(config: Path, name: str):
@@ -106,8 +123,8 @@ def segment(
     cfg = _section(config, "segment")
     if cfg is None:
         raise PixmuscleError(f"{config}: no `segment` section")
-    mod.run_segment(cfg, output)
-    _LOG.info("wrote %s", output)
+    mod.run_segment(cfg, output, synthetic=_synthetic(config))
+    _out(output)
 
 
 @app.command("build-model")
@@ -118,8 +135,8 @@ def build_model(
 ) -> None:
     """Turn a label volume (NIfTI or segmentation.h5) into a pixel-point model."""
     mod = _load("pixmuscle.stages.build_model")
-    mod.run_build_model(_section(config, "build_model"), output)
-    _LOG.info("wrote %s", output)
+    mod.run_build_model(_section(config, "build_model"), output, synthetic=_synthetic(config))
+    _out(output)
 
 
 @app.command()
@@ -132,7 +149,7 @@ def coarsen(
     """Coarse model: keep every second (FACTOR-th) pixel in-plane, slices unchanged."""
     mod = _load("pixmuscle.stages.coarsen")
     mod.run_coarsen(model, factor, output)
-    _LOG.info("wrote %s", output)
+    _out(output)
 
 
 @app.command()
@@ -144,22 +161,24 @@ def solve(
 ) -> None:
     """Finite-strain SCNI–RKPM solve: ramp activation, record reaction forces."""
     mod = _load("pixmuscle.stages.solve")
-    mod.run_solve(model, _section(config, "solve"), output)
-    _LOG.info("wrote %s", output)
+    mod.run_solve(model, _section(config, "solve"), output, synthetic=_synthetic(config))
+    _out(output)
 
 
 @app.command()
 @_guard
 def report(
     results: Path = typer.Argument(..., help="Input results.h5."),
-    output: Path = typer.Option(Path("report"), "--output", "-o", help="Output folder."),
+    output: Path | None = typer.Option(None, "--output", "-o", help=(
+        "Output folder (default: <results stem>_report next to the results file).")),
     config: Path | None = typer.Option(None, "--config", "-c", help="YAML config with a `report` section (optional)."),
 ) -> None:
-    """Force–activation curves, tissue table, ParaView fields, slice figures, HTML summary."""
+    """Force–activation curves, tissue table, ParaView fields, 3-D view, slices, HTML summary."""
     mod = _load("pixmuscle.stages.report")
     cfg = _section(config, "report") if config else None
-    index = mod.run_report(results, output, cfg)
-    _LOG.info("wrote %s", index)
+    extra = {"synthetic": True} if config and _synthetic(config) else None
+    index = mod.run_report(results, output, cfg, extra=extra)
+    _out(index)
 
 
 @app.command()
@@ -194,7 +213,14 @@ def synth(
     """Regenerate the bundled SYNTHETIC phantoms (not patient data) deterministically."""
     mod = _load("pixmuscle.synth")
     mod.generate_samples(output)
-    _LOG.info("wrote synthetic phantoms to %s", output)
+    _out(output)
+
+
+def _console():
+    """Tables of the verify commands go to stderr with the logs (stdout holds the paths)."""
+    from rich.console import Console
+
+    return Console(stderr=True, soft_wrap=True)
 
 
 @verify_app.command("rk")
@@ -203,21 +229,28 @@ def verify_rk(output: Path = typer.Option(Path("out/verify"), "--output", "-o"))
     """RK convergence table (paper Fig. 3) and material transition (Fig. 4)."""
     from .verify.rk import verify_rk as _v
 
-    _v(output)
+    res = _v(output, console=_console())
+    _out(*res["figures"])
 
 
 @verify_app.command("mechanics")
 @_guard
 def verify_mechanics(output: Path = typer.Option(Path("out/verify"), "--output", "-o")) -> None:
     """Patch test, uniaxial bar, isometric and oblique muscle blocks vs analytic solutions."""
-    _load("pixmuscle.verify.mechanics").verify_mechanics(output)
+    res = _load("pixmuscle.verify.mechanics").verify_mechanics(output, console=_console())
+    _out(res["csv"], res["png"])
+    if not res["all_ok"]:
+        raise typer.Exit(1)
 
 
 @verify_app.command("tendon")
 @_guard
 def verify_tendon(output: Path = typer.Option(Path("out/verify"), "--output", "-o")) -> None:
     """Paper Example 1: meshfree tendon vs a scikit-fem finite-element reference."""
-    _load("pixmuscle.verify.mechanics").verify_tendon(output)
+    res = _load("pixmuscle.verify.mechanics").verify_tendon(output, console=_console())
+    _out(res["csv"], res["png"])
+    if not res["ok"]:
+        raise typer.Exit(1)
 
 
 def main() -> None:  # console-script entry point

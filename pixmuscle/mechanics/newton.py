@@ -134,6 +134,7 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0) -> New
             rel = rn / scale if scale > 0 else np.inf
         if not np.isfinite(rn):
             return NewtonResult(state, False, it, rows, rel, "non-finite residual")
+        _LOG.debug("load step %d, Newton iteration %d: residual %.3e N, relative %.3e", step, it, rn, rel)
         res_ok = rn <= cfg.residual_tol * scale + system.atol
         if res_ok and (it == 0 or en_last <= cfg.energy_tol * E_ref):
             rows.append(NewtonRow(step, t, it, rn, rel, 0.0, 0.0))

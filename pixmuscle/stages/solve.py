@@ -19,6 +19,7 @@ from ..mechanics.solve import solve
 from ..model.model import load_model
 from ..model.tissues import MUSCLE
 from ..outdir import check_free_space
+from ..progress import newton_feed
 from ..progress import progress as _progress
 
 _LOG = logging.getLogger(__name__)
@@ -104,7 +105,7 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
         inputs = [Path(model_path)] + ([cfg.activation["image"]] if cfg.activation.get("image") is not None else [])
         try:
             if progress is None:
-                with _progress(cfg.steps + 1, "load step") as bar:
+                with _progress(cfg.steps + 1, "load step") as bar, newton_feed(bar):
                     results = solve(model, cfg, progress=bar, activation=ramp)
             else:
                 results = solve(model, cfg, progress=progress or None, activation=ramp)

@@ -24,6 +24,7 @@ does not share code with:
 from __future__ import annotations
 
 import csv
+import logging
 import pathlib
 import time
 
@@ -416,20 +417,27 @@ def tendon_comparison(h=(0.2, 0.2, 1.0), stretch: float = 2.0, steps: int = 5, r
         and timings.
     """
     from ..mechanics.solve import solve
+    from ..progress import newton_feed, progress
     from .tendon_fem import tendon_fem_reaction
 
+    log = logging.getLogger("pixmuscle.verify.tendon")
     model, mask, affine = tendon_model(h)
     t0 = time.perf_counter()
     if fem is None:
+        log.info("tendon: finite-element reference (scikit-fem, %s elements, %d steps) ...", element, steps)
         fem = tendon_fem_reaction(mask, affine, stretch=stretch, steps=steps, refine=refine, element=element, bc="clamped")
     t_fem = time.perf_counter() - t0
     cfg = _cfg(steps=steps, activation={"from": 0.0, "to": 0.0}, boundary_conditions=[
         {"nodes": "z_min", "fix": ["x", "y", "z"]},
         {"nodes": "z_max", "fix": ["x", "y"], "displace": {"z": float(stretch)}},
     ], **solve_kw)
+    log.info("tendon: FE reference done in %.1f s; meshfree solve (%d nodes, %d load steps) ...",
+             time.perf_counter() - t0, model.n_nodes, steps)
     t1 = time.perf_counter()
-    res = solve(model, cfg)
+    with progress(steps + 1, "tendon load step") as bar, newton_feed(bar):
+        res = solve(model, cfg, progress=bar)
     t_mf = time.perf_counter() - t1
+    log.info("tendon: meshfree solve done in %.1f s", t_mf)
     mf = dict(displacement=res.load_factor * stretch, force=res.force("z_min"), force_top=res.force("z_max"))
     f_fe = np.asarray(fem["force"], float)
     with np.errstate(divide="ignore", invalid="ignore"):
