@@ -128,3 +128,10 @@ def test_activation_image_force_matches_columns(tmp_path):
     assert res.force("z_max")[-1] == pytest.approx(ref, rel=2e-3)
     assert res.info["activation"] == {"medial": [0.0, pytest.approx(0.375)], "lateral": [0.0, pytest.approx(0.4375)]}
     assert load_volume(tmp_path / "act.nii.gz", kind="image").data.shape == SHAPE
+    # the report's activation section
+    from pixmuscle.report.config import ReportConfig
+    from pixmuscle.stages.report import make_report
+
+    make_report(tmp_path / "results.h5", tmp_path / "report", ReportConfig(vtu=False, slices=False, view3d=False))
+    page = (tmp_path / "report" / "index.html").read_text()
+    assert "Activation per muscle" in page and "0.4375" in page

@@ -25,7 +25,7 @@ from scipy.ndimage import map_coordinates
 from ..errors import InputError
 from ..model.tissues import MUSCLE
 
-__all__ = ["ActivationRamp", "activation_ramp", "image_on_nodes", "muscle_values", "per_muscle_summary"]
+__all__ = ["ActivationRamp", "activation_ramp", "image_on_nodes", "check_muscle_names", "muscle_values", "per_muscle_summary"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,6 +80,18 @@ def muscle_values(spec: float | Mapping[str, float], names: Sequence[str], where
                          "(or 'default' for the others)")
     default = float(spec.get("default", 0.0))
     return np.array([float(spec.get(n, default)) for n in names], float)
+
+
+def check_muscle_names(spec, names: Sequence[str], where: str) -> None:
+    """Raise InputError for a name in an activation mapping (``from``/``to``) that is not in ``names``.
+
+    For checking a configuration before any stage runs, when the muscle names are known from it
+    (segment seeds, a tissue map); the solve stage checks again against the model.
+    """
+    if isinstance(spec, Mapping):
+        for key in ("from", "to"):
+            if isinstance(spec.get(key), Mapping):
+                muscle_values(spec[key], names, f"{where}.{key}")
 
 
 def image_on_nodes(data: np.ndarray, affine: np.ndarray, X: np.ndarray, origin: np.ndarray,

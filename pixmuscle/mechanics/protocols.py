@@ -28,7 +28,8 @@ Force–length sweep
 The prescribed displacement δ of one end along one axis is swept over shortening (δ < 0) and
 lengthening (δ > 0) values at a fixed activation α and at α = 0. Active runs are one solve per
 δ, ramping α and δ together from the reference state (robust; hyperelastic equilibria do not
-depend on the path); passive runs are one solve per branch with a load step at each δ. The
+depend on the path); passive runs are one solve per branch, ``steps`` load steps per δ, read at
+each δ. The
 muscle length is L = L0 + δ with L0 the reference distance between the outer faces of the two
 end sets along the axis; active force = total − passive at the same δ.
 """
@@ -71,8 +72,8 @@ class ForceLengthConfig:
                                                                          "(equally spaced up to the largest)"})
     activation: float | dict[str, float] = field(default=1.0, metadata={
         "doc": "fixed activation of the active curve: a number or a mapping muscle → α with optional 'default'"})
-    steps: int = field(default=4, metadata={"range": (1, None), "doc": "load steps of each active solve "
-                                                                        "(α and δ ramped together)"})
+    steps: int = field(default=4, metadata={"range": (1, None), "doc": "load steps of each active solve (α and δ "
+                                                                        "ramped together), and per point of a passive branch"})
 
     def __post_init__(self):
         if self.shortening == 0.0 and self.lengthening == 0.0:
@@ -173,8 +174,9 @@ def force_length_cases(solve: SolveConfig, fl: ForceLengthConfig) -> list[dict]:
     -------
     list of dict
         ``name`` (``active_ref``, ``active_short_2``, ``passive_long``...), ``kind``
-        (active/passive), ``branch`` (ref/short/long), ``delta`` (cm; the final one for passive branches), ``deltas`` (the δ of
-        the load steps to read back, cm), ``cfg`` (SolveConfig with the swept displacement and
+        (active/passive), ``branch`` (ref/short/long), ``delta`` (cm; the final one for passive
+        branches), ``deltas`` (the δ read back, cm), ``read_steps`` (passive: the load steps at
+        those δ, ``steps`` apart), ``cfg`` (SolveConfig with the swept displacement and
         the activation of that run; from = 0 and to = the fixed α for active runs).
 
     Raises
@@ -207,7 +209,8 @@ def force_length_cases(solve: SolveConfig, fl: ForceLengthConfig) -> list[dict]:
         if not ds.size:
             continue
         cases.append(dict(name=f"passive_{branch}", kind="passive", branch=branch, delta=float(ds[-1]),
-                          deltas=ds.tolist(), cfg=with_delta(ds[-1], int(ds.size), 0.0)))
+                          deltas=ds.tolist(), read_steps=[fl.steps * j for j in range(1, ds.size + 1)],
+                          cfg=with_delta(ds[-1], int(ds.size) * fl.steps, 0.0)))
         for j, d in enumerate(ds, 1):
             cases.append(dict(name=f"active_{branch}_{j}", kind="active", branch=branch, delta=float(d),
                               deltas=[float(d)], cfg=with_delta(d, fl.steps, fl.activation)))

@@ -81,8 +81,8 @@ def _run(model_path, solve_cfg, cfg, out_path, warnings, synthetic) -> Path:
         if res is not None:
             f, sets = end_force_of(res, n, sets)
         if case["kind"] == "passive":
-            k = np.arange(1, n)  # step k reaches deltas[k-1]; step 0 is the reference state
-            passive.update({round(d, 12): float(f[j]) for d, j in zip(case["deltas"], k, strict=True)})
+            # step read_steps[j] reaches deltas[j]; step 0 is the reference state
+            passive.update({round(d, 12): float(f[k]) for d, k in zip(case["deltas"], case["read_steps"], strict=True)})
             passive[0.0] = float(f[0])
         else:
             active[round(case["delta"], 12)] = float(f[-1])

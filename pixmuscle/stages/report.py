@@ -105,7 +105,7 @@ def _write_report(res, results_path: Path, outdir: Path, final: Path, cfg: Repor
                                  summary["force_sets"])
     out["force_activation_csv"] = str(C.write_csv(outdir / "force_activation.csv", header, rows))
     # per-muscle forces, force-length, DWI (issue 18): fills the tissue table's per-muscle F_max
-    sections = protocol_sections(extra, outdir, summary, tissue, dpi=cfg.dpi)
+    sections = protocol_sections(extra, outdir, summary, tissue, dpi=cfg.dpi, activation=res.info.get("activation"))
     out["tissue_table_csv"] = str(C.write_csv(outdir / "tissue_table.csv", tissue["header"], table_csv_rows(tissue)))
 
     if cfg.vtu and summary["field_step"] is not None:

@@ -30,19 +30,30 @@ def _fmax_step(summary: dict) -> int | None:
     return int(np.flatnonzero(ok)[np.argmax(f[ok])]) if ok.any() else None
 
 
-def protocol_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: int = 120) -> list[str]:
-    """HTML sections for per-muscle forces, force–length curves and the DWI fit named in ``extra``.
+def protocol_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: int = 120,
+                      activation: dict | None = None) -> list[str]:
+    """HTML sections: activation per muscle, and the per-muscle forces, force–length curves and DWI
+    fit named in ``extra``.
+
+    ``activation`` is the results' ``solver_info["activation"]`` (muscle → [from, to] mean α).
 
     Side effects: writes the PNG/CSV files into ``outdir``; fills ``tissue["rows"]`` and
     ``summary["tissue_table"]`` per-muscle F_max; adds ``summary["muscle_forces"]`` /
     ``summary["outputs"]`` entries and warnings to ``summary["warnings"]``.
     """
     from ..report.dwi import dwi_section
+    from ..report.html import table
     from ..report.protocols import force_length_section, muscle_forces_section
 
     outdir = Path(outdir)
     warnings = summary["warnings"]
     parts: list[str] = []
+    if activation and len({tuple(v) for v in activation.values()}) > 1:
+        parts += ["<h2>Activation per muscle</h2>",
+                  table(["muscle", "α at the start (mean)", "α at the end (mean)"],
+                        [[m, a, b] for m, (a, b) in activation.items()]),
+                  '<p class="foot">solve.activation: per-muscle values and/or an activation image; α ramps linearly '
+                  "over the load steps; the curves' α is the mean over the muscle nodes.</p>"]
     if extra.get("muscle_forces"):
         from .muscle_forces import load_muscle_forces
 

@@ -125,7 +125,24 @@ def generate_samples(outdir="data/synthetic", names=None) -> dict:
     if names == list(SAMPLES):
         out["tendon"] = {"labels": write_tendon_labels(outdir)}
         out["leg_demo_dwi"] = write_dwi_sample(outdir)
+        out["leg_demo_activation"] = {"image": write_activation_sample(outdir)}
     return out
+
+
+def write_activation_sample(outdir="data/synthetic", prefix: str = "leg_demo") -> Path:
+    """SYNTHETIC activation image ``{prefix}_activation.nii.gz`` on the sample's MRI grid (0..1 per voxel).
+
+    α = 0.5 − 0.45 tanh((y − y_c) / 1 cm), y_c the centre of the grid along y: the posterior side
+    (small y) near 0.95, the anterior side near 0.05 — a smooth posterior-to-anterior gradient.
+    """
+    factory, kwargs = SAMPLES[prefix]
+    ph = factory(**kwargs)
+    shape = ph.mri.shape
+    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1).reshape(-1, 3)
+    y = (ijk @ ph.affine[:3, :3].T + ph.affine[:3, 3])[:, 1].reshape(shape)
+    yc = 0.5 * (y.min() + y.max())
+    alpha = np.clip(0.5 - 0.45 * np.tanh((y - yc) / 1.0), 0.0, 1.0)
+    return save_volume(Path(outdir) / f"{prefix}_activation.nii.gz", alpha, ph.affine)
 
 
 def write_dwi_sample(outdir="data/synthetic", prefix: str = "leg_demo", snr: float = 40.0) -> dict:
