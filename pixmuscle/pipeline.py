@@ -10,6 +10,8 @@ Root YAML keys (all optional except what the chosen stages need)::
     build_model: {...}       # pixmuscle.model.config.BuildModelConfig
     coarsen: {...}           # pixmuscle.model.config.CoarsenConfig
     solve: {...}             # pixmuscle.mechanics.config.SolveConfig
+    muscle_forces: {...}     # pixmuscle.mechanics.protocols.MuscleForcesConfig (end force split by muscle)
+    force_length: {...}      # pixmuscle.mechanics.protocols.ForceLengthConfig (end-displacement sweep)
     report: {...}            # pixmuscle.report.config.ReportConfig
     subjects:                # optional cohort: each entry = name + section overrides (deep-merged)
       - {name: young, build_model: {labels: young_labels.nii.gz}}
@@ -56,6 +58,8 @@ SECTIONS = {
     "build_model": ("pixmuscle.model.config", "BuildModelConfig"),
     "coarsen": ("pixmuscle.model.config", "CoarsenConfig"),
     "solve": ("pixmuscle.mechanics.config", "SolveConfig"),
+    "muscle_forces": ("pixmuscle.mechanics.protocols", "MuscleForcesConfig"),
+    "force_length": ("pixmuscle.mechanics.protocols", "ForceLengthConfig"),
     "report": ("pixmuscle.report.config", "ReportConfig"),
 }
 _ROOT_KEYS = {"title", "synthetic", "output_dir", "models", "subjects", "study", "execution", *SECTIONS}
@@ -84,6 +88,8 @@ class PipelineConfig:
     build_model: Any = None
     coarsen: Any = None
     solve: Any = None
+    muscle_forces: Any = None
+    force_length: Any = None
     report: Any = None
     subject: str = ""
     case: str = ""
@@ -177,10 +183,33 @@ def _parse_case(raw: dict, name: str, where: str, base_dir: Path, out_dir: Path,
     for sec in SECTIONS:
         if sec in raw:
             sections[sec] = parse_section(_section_class(sec), raw[sec], f"{where}{sec}", base_dir)
+    _check_muscle_names(sections, where)
     return PipelineConfig(
         name=name, title=str(raw.get("title", extra.get("subject") or name)), synthetic=bool(raw.get("synthetic", False)),
         output_dir=out_dir, models=tuple(models), base_dir=base_dir, **sections, **extra,
     )
+
+
+def _check_muscle_names(sections: dict, where: str) -> None:
+    """Muscle names in activation mappings and muscle_forces.muscles must be muscles of the case: checked
+    here against the segment seeds (the muscles a segmentation will have) before any stage runs; the
+    solve stage checks again against the model."""
+    seg = sections.get("segment")
+    if seg is None or not seg.seeds:
+        return
+    from .mechanics.activation import check_muscle_names, muscle_values
+
+    names = list(seg.seeds)
+    if sections.get("solve") is not None:
+        check_muscle_names(sections["solve"].activation, names, f"{where}solve.activation")
+    fl = sections.get("force_length")
+    if fl is not None and isinstance(fl.activation, dict):
+        muscle_values(fl.activation, names, f"{where}force_length.activation")
+    mf = sections.get("muscle_forces")
+    for m in (mf.muscles or []) if mf is not None else []:
+        if m not in names:
+            raise InputError(f"{where}muscle_forces.muscles: unknown muscle {m!r}; the segment seeds name: "
+                             f"{', '.join(names)}")
 
 
 def _check_subject_name(path: Path, i: int, name: Any, seen: dict) -> str:

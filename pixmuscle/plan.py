@@ -32,12 +32,14 @@ SCHEMAS = {
     "build-model": ("pixmuscle.model", 1),
     "coarsen": ("pixmuscle.model", 1),
     "solve": ("pixmuscle.results", 1),
+    "muscle-forces": ("pixmuscle.muscle_forces", 1),
+    "force-length": ("pixmuscle.force_length", 1),
     "report": None,
 }
 
 #: stage kind → config section it depends on
 SECTION_OF = {"segment": "segment", "build-model": "build_model", "coarsen": "coarsen", "solve": "solve",
-              "report": "report"}
+              "muscle-forces": "muscle_forces", "force-length": "force_length", "report": "report"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -219,7 +221,7 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
         stages.append(Stage("coarsen", "coarsen", "pixmuscle.stages.coarsen:run_coarsen",
                             {"model_path": model_path, "factor": cfg.coarsen.factor, "out_path": coarse_path,
                              "config": cfg.coarsen}, coarse_path, cfg.coarsen, (model_path,)))
-    results = {}
+    results, protocols = {}, {}
     for which in cfg.models:
         mpath = coarse_path if which == "coarse" else model_path
         rpath = cfg.output_dir / f"results_{which}.h5"
@@ -230,10 +232,16 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
             stages.append(Stage("solve", f"solve ({which})", "pixmuscle.stages.solve:run_solve",
                                 {"model_path": mpath, "cfg": cfg.solve, "out_path": rpath}, rpath, cfg.solve,
                                 (mpath,)))
+        protocols.update(_protocol_stages(cfg, which, mpath, rpath, stages if "solve" in active else None))
     if "report" in active:
         main = results[cfg.models[0]]
         extra = {"title": cfg.title, "synthetic": cfg.synthetic, "subject": cfg.subject or cfg.name,
                  "compare": {k: str(v) for k, v in results.items()}}
+        # issue 18: per-muscle forces and force-length curves of the main model, the DWI fit's QC maps
+        extra.update({k[:-len(f"_{cfg.models[0]}")]: str(v) for k, v in protocols.items()
+                      if k.endswith(f"_{cfg.models[0]}")})
+        if cfg.segment is not None and getattr(cfg.segment, "dwi", None) is not None:
+            extra["dwi_qc"] = str(seg_path.with_name("segmentation_qc"))
         if cfg.params:
             extra["study"] = {k: v for k, v in cfg.params}
         out = cfg.output_dir / "report"
@@ -241,6 +249,34 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
                             {"results_path": main, "outdir": out, "cfg": cfg.report, "extra": extra},
                             out / "index.html", cfg.report, tuple(results.values())))
     return stages
+
+
+def _protocol_stages(cfg: Any, which: str, mpath: Path, rpath: Path, stages: list | None) -> dict[str, Path]:
+    """The multi-solve protocols of one model (issue 18), after its solve: ``muscle_forces`` and
+    ``force_length`` sections → stages appended to ``stages`` (None: only their output paths).
+
+    Returns ``{"muscle_forces_<model>": path, "force_length_<model>": path}`` for the sections present.
+    """
+    out = {}
+    mf, fl = getattr(cfg, "muscle_forces", None), getattr(cfg, "force_length", None)
+    if mf is not None:
+        p = cfg.output_dir / f"muscle_forces_{which}.h5"
+        out[f"muscle_forces_{which}"] = p
+        if stages is not None:
+            stages.append(Stage("muscle-forces", f"muscle forces ({which})", "pixmuscle.stages.muscle_forces:run_muscle_forces",
+                                {"model_path": mpath, "solve_cfg": cfg.solve, "cfg": mf, "out_path": p,
+                                 "results_path": rpath, "synthetic": cfg.synthetic},
+                                p, {"solve": cfg.solve, "muscle_forces": mf}, (mpath, rpath)))
+    if fl is not None:
+        p = cfg.output_dir / f"force_length_{which}.h5"
+        out[f"force_length_{which}"] = p
+        if stages is not None:
+            image = cfg.solve.activation.get("image")
+            stages.append(Stage("force-length", f"force-length ({which})", "pixmuscle.stages.force_length:run_force_length",
+                                {"model_path": mpath, "solve_cfg": cfg.solve, "cfg": fl, "out_path": p,
+                                 "synthetic": cfg.synthetic},
+                                p, {"solve": cfg.solve, "force_length": fl}, (mpath, *([image] if image else []))))
+    return out
 
 
 def results_paths(cfg: Any) -> dict[str, Path]:
