@@ -11,6 +11,7 @@
 * :func:`remove_leftovers` — hidden ``.*.partial`` files and folders that a killed write left
   behind (see :func:`pixmuscle.store.write_stage` and :func:`pixmuscle.store.atomic_folder`).
   Only called with the lock held, when no other pixmuscle process can be writing there.
+* :func:`hold_folders` — both, for every folder of a run.
 * :func:`check_free_space` — refuse a long stage whose output would not fit on the disk.
 """
 
@@ -90,8 +91,10 @@ def prepare_output_dir(path: str | os.PathLike, what: str = "output_dir") -> Pat
 def _holder(lock_path: Path) -> str:
     try:
         info = json.loads(lock_path.read_text())
-        return (f"pid {info.get('pid')} on {info.get('host')}, config {info.get('config')}, "
-                f"started {info.get('started_utc')}")
+        argv = list(info.get("argv") or [])
+        cmd = " ".join([Path(argv[0]).name, *argv[1:]]) if argv else "?"
+        what = f"config {info['config']}" if info.get("config") else cmd
+        return f"pid {info.get('pid')} on {info.get('host')}, {what}, started {info.get('started_utc')}"
     except (OSError, ValueError):
         return "another process"
 
@@ -125,13 +128,32 @@ def output_lock(folder: str | os.PathLike, config: str | os.PathLike | None = No
         os.close(fd)  # releases the lock
 
 
+@contextlib.contextmanager
+def hold_folders(folders) -> Iterator[list[Path]]:
+    """Lock every folder of a run (:func:`output_lock`, in a fixed order) and sweep its leftovers.
+
+    Raises
+    ------
+    InputError
+        One of them is in use by another run (nothing was changed).
+    """
+    folders = sorted({Path(f) for f in folders})
+    with contextlib.ExitStack() as stack:
+        for f in folders:
+            prepare_output_dir(f)
+            stack.enter_context(output_lock(f))
+        for f in folders:
+            remove_leftovers(f)
+        yield folders
+
+
 def remove_leftovers(folder: str | os.PathLike) -> list[Path]:
     """Remove hidden ``.*.partial`` files and folders under ``folder`` (left by killed writes).
 
     Call only with :func:`output_lock` held. Returns the removed paths (they are logged).
     """
     removed = []
-    for p in sorted(Path(folder).rglob(f".*{PARTIAL_SUFFIX}")):
+    for p in sorted(Path(folder).glob(f".*{PARTIAL_SUFFIX}")):  # temporaries sit beside their target
         try:
             if p.is_dir() and not p.is_symlink():
                 shutil.rmtree(p)

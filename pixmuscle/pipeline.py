@@ -321,10 +321,17 @@ def run_subject(cfg: PipelineConfig, *, force: bool = False, start: str | None =
     """Run the stages of one case in this process; returns its summary (paths, stages run/skipped).
 
     Errors propagate (:class:`~pixmuscle.errors.PixmuscleError` for bad input or a failed solve).
+    Before any stage: :func:`pixmuscle.preflight.check_case`; the case's folders are locked for
+    the run and swept of leftovers (:func:`pixmuscle.outdir.hold_folders`).
     """
+    from .outdir import hold_folders
+    from .preflight import check_case, stage_folders
     from .runners.serial import run_serial
 
-    outcome = run_serial({cfg.name: plan_case(cfg, start, until)}, force=force, raise_errors=True)[cfg.name]
+    stages = plan_case(cfg, start, until)
+    check_case(cfg, stages)
+    with hold_folders(stage_folders(stages) | {cfg.output_dir}):
+        outcome = run_serial({cfg.name: stages}, force=force, raise_errors=True)[cfg.name]
     return _case_summary(cfg, outcome)
 
 
@@ -350,6 +357,8 @@ def run_pipeline(path: str | Path, *, force: bool = False, start: str | None = N
     bool
         True when every case succeeded. A single-case run raises its error instead.
     """
+    from .outdir import hold_folders
+    from .preflight import check_case, stage_folders
     from .runners import Progress, choose_runner
 
     run = load_run(path, strict=False)
@@ -361,27 +370,33 @@ def run_pipeline(path: str | Path, *, force: bool = False, start: str | None = N
             continue
         try:
             plans[c.name] = plan_case(c, start, until)
+            check_case(c, plans[c.name])  # before any stage of any case runs
         except InputError as exc:
+            plans.pop(c.name, None)
             if len(cases) == 1:
                 raise
             failures[c.name] = str(exc)
     for name, err in failures.items():
         _LOG.error("%s: invalid configuration: %s", name, err)
-    progress = Progress([c.name for c in cases if c.name in plans])
-    runner = choose_runner(len(plans), workers=workers if workers is not None else run.workers,
-                           scheduler=scheduler or run.scheduler)
-    outcomes = runner(plans, force=force, progress=progress, raise_errors=len(cases) == 1)
-    summaries = []
-    for c in cases:
-        if c.name in failures:
-            continue
-        o = outcomes[c.name]
-        if o.error is not None:
-            failures[c.name] = o.error
-        else:
-            summaries.append(_case_summary(c, o))
-    progress.finish()
-    _write_summaries(run, summaries, failures)
+    folders = {f for c in cases if c.name in plans for f in stage_folders(plans[c.name]) | {c.output_dir}}
+    if run.cohort or run.study is not None:
+        folders.add(run.root_dir)
+    with hold_folders(folders):  # one run at a time in these folders
+        progress = Progress([c.name for c in cases if c.name in plans])
+        runner = choose_runner(len(plans), workers=workers if workers is not None else run.workers,
+                               scheduler=scheduler or run.scheduler)
+        outcomes = runner(plans, force=force, progress=progress, raise_errors=len(cases) == 1)
+        summaries = []
+        for c in cases:
+            if c.name in failures:
+                continue
+            o = outcomes[c.name]
+            if o.error is not None:
+                failures[c.name] = o.error
+            else:
+                summaries.append(_case_summary(c, o))
+        progress.finish()
+        _write_summaries(run, summaries, failures)
     return not failures
 
 

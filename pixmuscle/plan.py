@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from .config import parse_section
-from .errors import InputError
+from .errors import InputError, SolverError
 from .store import config_hash, sha256_file
 
 #: the CLI stages in pipeline order
@@ -63,6 +63,9 @@ class Stage:
     inputs : tuple of Path
         Files the stage reads (config inputs and upstream outputs); those that exist when the
         stage runs must be recorded in the output's provenance for it to be skipped.
+    on_failure : Stage, optional
+        Run when this stage fails with a :class:`~pixmuscle.errors.SolverError` (a solve's report
+        stage: the report of the converged steps must replace the report of an older run).
     """
 
     kind: str
@@ -72,6 +75,7 @@ class Stage:
     output: Path
     config: Any = None
     inputs: tuple = ()
+    on_failure: Any = None
 
     @property
     def schema(self) -> tuple[str, int] | None:
@@ -123,8 +127,31 @@ def execute_stage(stage: Stage, force: bool = False) -> str:
         return "skipped"
     module, func = stage.action.split(":")
     stage.output.parent.mkdir(parents=True, exist_ok=True)
-    getattr(importlib.import_module(module), func)(**stage.kwargs)
+    try:
+        getattr(importlib.import_module(module), func)(**stage.kwargs)
+    except SolverError:
+        if stage.on_failure is not None:
+            _after_failure(stage.on_failure)
+        raise
     return "ran"
+
+
+def _after_failure(report: Stage) -> None:
+    """Report of a failed solve's partial results; if even that fails, no report (never a stale one)."""
+    import logging
+    import shutil
+
+    from .errors import PixmuscleError
+
+    log = logging.getLogger("pixmuscle.plan")
+    folder = Path(report.kwargs["outdir"])
+    try:
+        module, func = report.action.split(":")
+        index = getattr(importlib.import_module(module), func)(**report.kwargs)
+        log.error("the solve failed; the report shows its converged steps: %s", index)
+    except (PixmuscleError, OSError) as exc:
+        shutil.rmtree(folder, ignore_errors=True)
+        log.error("the solve failed and its report could not be written (%s); the older report was removed", exc)
 
 
 def stage_range(start: str | None, until: str | None) -> tuple[int, int]:
@@ -245,9 +272,12 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
         if cfg.params:
             extra["study"] = {k: v for k, v in cfg.params}
         out = cfg.output_dir / "report"
-        stages.append(Stage("report", "report", "pixmuscle.stages.report:run_report",
-                            {"results_path": main, "outdir": out, "cfg": cfg.report, "extra": extra},
-                            out / "index.html", cfg.report, tuple(results.values())))
+        report = Stage("report", "report", "pixmuscle.stages.report:run_report",
+                       {"results_path": main, "outdir": out, "cfg": cfg.report, "extra": extra},
+                       out / "index.html", cfg.report, tuple(results.values()))
+        # a failed solve still gets its report (converged steps, reason), never an older run's
+        stages = [dataclasses.replace(st, on_failure=report) if st.kind == "solve" else st for st in stages]
+        stages.append(report)
     return stages
 
 

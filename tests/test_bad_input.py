@@ -8,6 +8,7 @@ output lock, stderr, disk full on a small tmpfs mounted in a private mount names
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import socket
@@ -16,6 +17,7 @@ import sys
 from pathlib import Path
 
 import h5py
+import nibabel as nib
 import numpy as np
 import pytest
 import yaml
@@ -339,3 +341,125 @@ def test_decreasing_ramp_is_allowed_and_logged(solved, tmp_path):
     with h5py.File(tmp_path / "r.h5") as f:
         assert f.attrs["status"] == "complete"
         np.testing.assert_allclose(f["steps/alpha"][()], [0.5, 0.3, 0.1])
+
+
+# --------------------------------------------------------------------------- run-level cases (pipeline hooks)
+def test_failed_solve_rewrites_the_report_as_failed(solved, tmp_path):
+    """Point 1 and 13: after a complete run, a failing solve leaves a report that says failed."""
+    cfg_path, out = copy_run(solved, tmp_path)
+    assert json.loads((out / "report/summary.json").read_text())["status"] == "complete"
+    raw = yaml.safe_load(cfg_path.read_text())
+    raw["solve"]["newton"] = {"max_iterations": 2, "max_cutbacks": 0}   # step 1 cannot converge in 2 iterations
+    write_config(cfg_path, raw)
+    r = cli("run", cfg_path)
+    assert r.exit_code == 2
+    assert "load step 1 of 2" in error_line(r.stderr)
+    with h5py.File(out / "results_coarse.h5") as f:
+        assert str(f.attrs["status"]).startswith("failed")
+    summary = json.loads((out / "report/summary.json").read_text())
+    assert summary["failed"] and summary["status"].startswith("failed: load step 1 of 2")
+    assert summary["curve"]["converged"] == [True]                       # the converged steps are shown
+    html = (out / "report/index.html").read_text()
+    assert "did not complete" in html and "load step 1 of 2" in html
+    assert leftovers(out) == []
+
+
+def test_leftover_partials_are_removed(solved, tmp_path):
+    """Point 16 and 17: temporaries of killed writes (stage file, report folder) are swept."""
+    cfg_path, out = copy_run(solved, tmp_path)
+    host, pid = socket.gethostname(), dead_pid()
+    (out / f".results_coarse.h5.{host}.{pid}.x1y2.partial").write_bytes(b"half an HDF5 file")
+    (out / ".results_coarse.h5.old_style.partial").write_bytes(b"from an older version")
+    killed_report = out / f".report.{host}.{pid}.z3w4.partial"
+    killed_report.mkdir()
+    (killed_report / "force_activation.csv").write_text("alpha\n0\n")
+    r = cli("run", cfg_path, "--from", "report")
+    assert r.exit_code == 0, r.stderr
+    assert leftovers(out) == []
+    assert (out / "report/index.html").exists()
+    assert ".partial" not in (out / "report/summary.json").read_text()     # paths name the final folder
+
+
+def test_second_run_into_a_locked_folder_refuses(solved, tmp_path):
+    """Point 4: a run holding the folder makes another run refuse, naming the holder."""
+    cfg_path, out = copy_run(solved, tmp_path)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from pixmuscle.outdir import output_lock\n"
+         f"with output_lock({str(out)!r}):\n    print('locked', flush=True); sys.stdin.read()"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        r = proc("run", cfg_path)
+        line = error_line(r.stderr)
+        assert r.returncode == 2 and "in use by another pixmuscle run" in line and f"pid {holder.pid}" in line
+    finally:
+        holder.stdin.close()
+        holder.wait()
+    r = cli("run", cfg_path, "--from", "report")  # the lock went with its holder
+    assert r.exit_code == 0, r.stderr
+
+
+def test_dti_hole_in_a_muscle_is_reported(phantom, tmp_path):
+    """Point 5: zero tensors over part of the muscle: warning with voxel counts, in the log and the report."""
+    d, seed = phantom
+    img = nib.load(d / "mg_dti_tensor.nii.gz")
+    assert img.header.get_xyzt_units()[0] == "mm"
+    data = np.asarray(img.dataobj).copy()
+    world = nib.affines.apply_affine(img.affine, np.indices(data.shape[:3]).reshape(3, -1).T).reshape(*data.shape[:3], 3)
+    dx, dy = world[..., 0] - 10 * seed[0], world[..., 1] - 10 * seed[1]   # mm from the seed
+    data[(dx > -12) & (dx < -3) & (np.abs(dy) < 6)] = 0                    # a hole beside (not on) the seed
+    hole = tmp_path / "dti_hole.nii.gz"
+    nib.save(nib.Nifti1Image(data, img.affine, img.header), hole)
+    cfg = base_config(phantom, tmp_path / "out")
+    cfg["segment"]["dti_tensor"] = str(hole)
+    cfg["solve"]["steps"] = 1
+    cfg["report"] = {"vtu": False, "slices": False, "html": True}
+    r = proc("run", write_config(tmp_path / "c.yaml", cfg))
+    assert r.returncode == 0, r.stderr
+    log = r.stdout + r.stderr  # (stderr only once the log goes there, see the point 19 test)
+    assert "DTI has no signal" in log and "medial_gastrocnemius" in log
+    with h5py.File(tmp_path / "out/segmentation.h5") as f:
+        counts = f["qc/no_signal_voxels"][()]
+    assert counts[0] > 0
+    warnings = json.loads((tmp_path / "out/report/summary.json").read_text())["warnings"]
+    assert any("DTI has no signal" in w and f"medial_gastrocnemius {counts[0]}" in w for w in warnings)
+
+
+def test_missing_node_set_is_caught_before_any_stage(phantom, tmp_path):
+    """Point 20: a BC naming a set the model will not have stops the run before segmenting."""
+    cfg = base_config(phantom, tmp_path / "out")
+    cfg["solve"]["boundary_conditions"][1]["nodes"] = "z_top"
+    r = cli("run", write_config(tmp_path / "c.yaml", cfg))
+    assert r.exit_code == 2
+    assert "solve.boundary_conditions[1].nodes: node set 'z_top' does not exist" in error_line(r.stderr)
+    assert not (tmp_path / "out/segmentation.h5").exists()
+
+
+def test_output_dir_that_is_a_file(phantom, tmp_path):
+    """Point 10."""
+    (tmp_path / "out").write_text("not a folder")
+    r = cli("run", write_config(tmp_path / "c.yaml", base_config(phantom, tmp_path / "out")))
+    assert r.exit_code == 2 and f"output_dir {tmp_path / 'out'}: is a file, expected a folder" in error_line(r.stderr)
+
+
+@needs_mount
+def test_read_only_output_folder_is_refused_before_work(phantom, tmp_path):
+    """Point 9: checked before segmentation (a read-only file system stops even root)."""
+    cfg = write_config(tmp_path / "c.yaml", base_config(phantom, tmp_path / "ro" / "out"))
+    r = in_tmpfs(tmp_path / "ro", "ro", "run", cfg)
+    assert r.returncode == 2
+    assert f"output_dir {tmp_path / 'ro' / 'out'}: not writable (Read-only file system)" in error_line(r.stderr)
+    assert "outer boundary" not in r.stderr                              # no stage started
+
+
+@needs_mount
+def test_read_only_output_of_a_stage_command_is_refused_before_work(solved, tmp_path):
+    """Point 9 for a single stage: `pixmuscle solve -o <read-only>/r.h5` stops before solving."""
+    out, cfg = solved
+    c = write_config(tmp_path / "c.yaml", {"solve": cfg["solve"]})
+    r = in_tmpfs(tmp_path / "ro", "ro", "solve", out / "model_coarse.h5", "-c", c, "-o", tmp_path / "ro" / "r.h5")
+    assert r.returncode == 2
+    assert f"output folder {tmp_path / 'ro'}: not writable (Read-only file system)" in error_line(r.stderr)
+    assert "load step" not in r.stdout + r.stderr
+
+

@@ -127,9 +127,14 @@ def _write_report(res, results_path: Path, outdir: Path, final: Path, cfg: Repor
     for w in warnings:  # the upstream stages' warnings were shown when those stages ran
         if not w.startswith(upstream):
             _LOG.warning("report: %s", w)
-    for k, v in out.items():  # the paths as they will be once the folder is in place
-        out[k] = [str(final / Path(p).relative_to(outdir)) for p in v] if k == "vtu" else (
-            str(final / Path(v).relative_to(outdir)) if isinstance(v, str) else v)
+    def reroot(v):  # a path inside the folder being written → where it will be once the folder is in place
+        if isinstance(v, list):
+            return [reroot(x) for x in v]
+        if isinstance(v, str) and Path(v).is_relative_to(outdir):
+            return str(final / Path(v).relative_to(outdir))
+        return v
+
+    out.update({k: reroot(v) for k, v in out.items()})
     if cfg.html:
         out["index_html"] = str(final / "index.html")
     out["summary_json"] = str(final / "summary.json")

@@ -28,6 +28,7 @@ from pixmuscle.imaging.dti import (
 from pixmuscle.imaging.nifti import load_volume, save_volume
 from pixmuscle.imaging.resample import resample_labels
 from pixmuscle.io.lineage import capture_warnings, stage_attrs
+from pixmuscle.outdir import prepare_output_dir
 from pixmuscle.segmentation.config import SegmentConfig
 from pixmuscle.segmentation.pipeline import SegmentationResult, segment_volume
 from pixmuscle.store import write_dataset, write_stage
@@ -95,6 +96,7 @@ def run_segment(cfg, out_path, progress=None, *, synthetic=False):
     if cfg.mri is None:
         raise InputError("segment.mri: required key is missing (anatomical MRI, NIfTI)")
     out_path = Path(out_path)
+    prepare_output_dir(out_path.parent, "output folder")  # before the work, not after it
     stem = out_path.name[:-len(out_path.suffix)] if out_path.suffix else out_path.name
     with capture_warnings() as warnings:
         mri, res, inputs = _segment(cfg, out_path.with_name(f"{stem}_qc"), progress)

@@ -18,7 +18,7 @@ from ..mechanics.config import SolveConfig
 from ..mechanics.solve import solve
 from ..model.model import load_model
 from ..model.tissues import MUSCLE
-from ..outdir import check_free_space
+from ..outdir import check_free_space, prepare_output_dir
 from ..progress import newton_feed
 from ..progress import progress as _progress
 
@@ -94,6 +94,7 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
         check_boundary_conditions(model, list(cfg.boundary_conditions))  # before the (long) set-up
         # results hold u, d, Cauchy stress and max principal stress per node and step (float64, gzip
         # rarely halves them): refuse to start when even half of that does not fit
+        prepare_output_dir(Path(out_path).parent, "output folder")
         check_free_space(Path(out_path), 0.5 * (cfg.steps + 1) * model.n_nodes * 13 * 8, "the results of this solve")
         ramp = model_activation(model, cfg)
         falling = {k: ab for k, ab in _per_muscle(cfg, ramp, model).items() if ab[1] < ab[0]}
