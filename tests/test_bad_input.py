@@ -463,3 +463,14 @@ def test_read_only_output_of_a_stage_command_is_refused_before_work(solved, tmp_
     assert "load step" not in r.stdout + r.stderr
 
 
+
+
+def test_duplicate_subject_names(phantom, tmp_path):
+    """Point 3 (the check is issue 13's, in pipeline.load_run): refused before anything is written."""
+    cfg = base_config(phantom, tmp_path / "cohort")
+    cfg["subjects"] = [{"name": "young"}, {"name": "young", "solve": {"steps": 1}}]
+    c = write_config(tmp_path / "c.yaml", cfg)
+    r = cli("run", c)
+    assert r.exit_code == 2
+    assert f"{c}: subjects[1].name: 'young' is already the name of subjects[0]" in error_line(r.stderr)
+    assert not (tmp_path / "cohort").exists()
