@@ -72,6 +72,13 @@ def _guard(fn: Callable) -> Callable:
                 raise
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from None
+        except OSError as exc:  # a file system refusing a write (disk full, read-only): one line too
+            from .outdir import WRITE_ERRNOS, describe_os_error
+
+            if _STATE["debug"] or exc.errno not in WRITE_ERRNOS:
+                raise
+            typer.echo(f"error: {describe_os_error(exc, verb=None)}", err=True)
+            raise typer.Exit(2) from None
         except KeyboardInterrupt:
             typer.echo("interrupted; no partial output was left behind", err=True)
             raise typer.Exit(130) from None

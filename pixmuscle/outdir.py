@@ -36,6 +36,8 @@ from .errors import InputError, OutputError
 _LOG = logging.getLogger(__name__)
 
 LOCK_NAME = ".pixmuscle.lock"
+#: errors of a file system refusing a write (as opposed to a bug or a missing input)
+WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO, errno.EFBIG)
 PARTIAL_SUFFIX = ".partial"
 
 
@@ -182,11 +184,11 @@ def check_free_space(path: str | os.PathLike, nbytes: float, what: str) -> None:
                           f"{_mb(free)} free")
 
 
-def describe_os_error(exc: OSError, path: str | os.PathLike | None = None) -> str:
-    """One line for an operating-system error while writing: the path, the reason and the free space."""
+def describe_os_error(exc: OSError, path: str | os.PathLike | None = None, verb: str | None = "cannot write") -> str:
+    """One line for an operating-system error: the path, the reason and (disk full) the free space."""
     p = path if path is not None else (exc.filename or "?")
-    text = f"{p}: cannot write ({exc.strerror or exc})"
-    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+    text = f"{p}: {verb} ({exc.strerror or exc})" if verb else f"{p}: {exc.strerror or exc}"
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT) and p != "?":
         with contextlib.suppress(OSError):
             text += f"; {_mb(free_bytes(p))} free on that disk"
     return text

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
-import errno
 import hashlib
 import io
 import json
@@ -143,8 +142,6 @@ def write_stage(
     return path
 
 
-#: errors of the file system being written (as opposed to a bug or a missing input)
-_WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO, errno.EFBIG)
 
 
 def _umask() -> int:
@@ -196,7 +193,7 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes | memoryview) -> Pat
         Not enough free space, or the file system refused the write (the message names the path,
         the reason and the free space).
     """
-    from .outdir import describe_os_error, free_bytes, prepare_output_dir
+    from .outdir import WRITE_ERRNOS, describe_os_error, free_bytes, prepare_output_dir
 
     path = Path(path)
     prepare_output_dir(path.parent, "output folder")
@@ -219,7 +216,7 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes | memoryview) -> Pat
         if tmp is not None:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(tmp)
-        if exc.errno in _WRITE_ERRNOS:
+        if exc.errno in WRITE_ERRNOS:
             raise OutputError(describe_os_error(exc, path) + "; nothing was written") from None
         raise
     except BaseException:
@@ -245,7 +242,7 @@ def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
     OutputError
         The file system refused a write (disk full, read-only).
     """
-    from .outdir import describe_os_error, prepare_output_dir
+    from .outdir import WRITE_ERRNOS, describe_os_error, prepare_output_dir
 
     path = Path(path)
     if path.exists() and not path.is_dir():
@@ -258,7 +255,7 @@ def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
         try:
             yield tmp
         except OSError as exc:
-            if exc.errno in _WRITE_ERRNOS:
+            if exc.errno in WRITE_ERRNOS:
                 raise OutputError(describe_os_error(exc, path) + "; nothing of it was kept, the previous one (if any) "
                                   "is unchanged") from None
             raise

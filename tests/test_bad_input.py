@@ -329,15 +329,15 @@ def test_two_muscles_with_the_same_seed(phantom, tmp_path):
 
 
 # --------------------------------------------------------------------------- 21: decreasing activation
-def test_decreasing_ramp_is_allowed_and_logged(solved, tmp_path):
-    """Point 21: a relaxation ramp (from > to) runs, and the log says so."""
+def test_decreasing_ramp_is_allowed_and_logged_on_stderr(solved, tmp_path):
+    """Point 21: a relaxation ramp (from > to) runs, and the log says so; point 19: on stderr."""
     out, cfg = solved
     solve = {**cfg["solve"], "activation": {"from": 0.5, "to": 0.1}}
-    r = proc("solve", out / "model_coarse.h5", "-c", write_config(tmp_path / "c.yaml", {"solve": solve}),
-             "-o", tmp_path / "r.h5")
-    assert r.returncode == 0, r.stderr
-    log = r.stdout + r.stderr
-    assert "decreasing ramp" in log and "relaxation" in log
+    r = cli("solve", out / "model_coarse.h5", "-c", write_config(tmp_path / "c.yaml", {"solve": solve}),
+            "-o", tmp_path / "r.h5")
+    assert r.exit_code == 0, r.stderr
+    assert "decreasing ramp" in r.stderr and "relaxation" in r.stderr
+    assert "relaxation" not in r.stdout and "load step" not in r.stdout       # point 19: the log is on stderr
     with h5py.File(tmp_path / "r.h5") as f:
         assert f.attrs["status"] == "complete"
         np.testing.assert_allclose(f["steps/alpha"][()], [0.5, 0.3, 0.1])
@@ -414,10 +414,9 @@ def test_dti_hole_in_a_muscle_is_reported(phantom, tmp_path):
     cfg["segment"]["dti_tensor"] = str(hole)
     cfg["solve"]["steps"] = 1
     cfg["report"] = {"vtu": False, "slices": False, "html": True}
-    r = proc("run", write_config(tmp_path / "c.yaml", cfg))
-    assert r.returncode == 0, r.stderr
-    log = r.stdout + r.stderr  # (stderr only once the log goes there, see the point 19 test)
-    assert "DTI has no signal" in log and "medial_gastrocnemius" in log
+    r = cli("run", write_config(tmp_path / "c.yaml", cfg))
+    assert r.exit_code == 0, r.stderr
+    assert "DTI has no signal" in r.stderr and "medial_gastrocnemius" in r.stderr and "DTI" not in r.stdout
     with h5py.File(tmp_path / "out/segmentation.h5") as f:
         counts = f["qc/no_signal_voxels"][()]
     assert counts[0] > 0
@@ -474,3 +473,17 @@ def test_duplicate_subject_names(phantom, tmp_path):
     assert r.exit_code == 2
     assert f"{c}: subjects[1].name: 'young' is already the name of subjects[0]" in error_line(r.stderr)
     assert not (tmp_path / "cohort").exists()
+
+
+@needs_mount
+def test_disk_full_during_the_segment_side_outputs(phantom, tmp_path):
+    """Point 8: the NIfTI/PNG side outputs of segment do not fit: one line, and no segmentation.h5
+    (the stage file is written last, so the stage is not taken as done)."""
+    cfg = write_config(tmp_path / "c.yaml", base_config(phantom, tmp_path / "unused"))
+    target = tmp_path / "small"
+    r = in_tmpfs(target, "size=24k", "segment", "-c", cfg, "-o", target / "segmentation.h5")
+    assert r.returncode == 2, r.stderr + r.stdout
+    line = error_line(r.stderr)
+    assert "No space left on device" in line and "free" in line and str(target) in line
+    left = r.stdout.split("LEFT:", 1)[1].split()
+    assert "segmentation.h5" not in left and not [n for n in left if n.startswith(".")]

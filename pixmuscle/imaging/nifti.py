@@ -27,7 +27,7 @@ import nibabel as nib
 import numpy as np
 from nibabel.orientations import apply_orientation, inv_ornt_aff, io_orientation
 
-from pixmuscle.errors import InputError
+from pixmuscle.errors import InputError, OutputError
 from pixmuscle.imaging.dti import components_from_tensor, tensor_from_components
 
 KINDS = ("image", "labels", "vectors", "tensor")
@@ -226,6 +226,12 @@ def save_volume(path, data, affine_cm, *, kind: str = "image") -> Path:
     try:
         nib.save(img, str(tmp))
         os.replace(tmp, path)
+    except OSError as exc:  # disk full, read-only: one line naming the file (nibabel's error names none)
+        from ..outdir import WRITE_ERRNOS, describe_os_error
+
+        if exc.errno in WRITE_ERRNOS:
+            raise OutputError(describe_os_error(exc, path) + "; nothing was written") from None
+        raise
     finally:
         if tmp.exists():
             tmp.unlink()

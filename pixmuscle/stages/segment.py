@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pixmuscle.errors import InputError
+from pixmuscle.errors import InputError, OutputError
 from pixmuscle.imaging.dti import (
     resample_tensor_to_grid,
     resample_vectors_to_grid,
@@ -28,7 +28,7 @@ from pixmuscle.imaging.dti import (
 from pixmuscle.imaging.nifti import load_volume, save_volume
 from pixmuscle.imaging.resample import resample_labels
 from pixmuscle.io.lineage import capture_warnings, stage_attrs
-from pixmuscle.outdir import prepare_output_dir
+from pixmuscle.outdir import WRITE_ERRNOS, describe_os_error, prepare_output_dir
 from pixmuscle.segmentation.config import SegmentConfig
 from pixmuscle.segmentation.pipeline import SegmentationResult, segment_volume
 from pixmuscle.store import write_dataset, write_stage
@@ -101,14 +101,16 @@ def run_segment(cfg, out_path, progress=None, *, synthetic=False):
     with capture_warnings() as warnings:
         mri, res, inputs = _segment(cfg, out_path.with_name(f"{stem}_qc"), progress)
     affine = mri.affine
-    write_segmentation(out_path, res, affine, config=cfg, inputs=inputs,
-                       attrs=stage_attrs("segment", inputs, warnings, synthetic=synthetic))
+    # the side outputs first, the stage file last: it is what marks the stage as done (a full disk
+    # half-way must not leave a complete-looking segmentation.h5 without its images)
     save_volume(out_path.with_name(f"{stem}_labels.nii.gz"), res.labels, affine, kind="labels")
     save_volume(out_path.with_name(f"{stem}_muscles.nii.gz"), res.muscle_id, affine,
                 kind="labels")
     save_volume(out_path.with_name(f"{stem}_fibers.nii.gz"), res.fiber, affine, kind="vectors")
     if cfg.qc_png:
         write_qc_pngs(out_path.with_name(f"{stem}_qc"), mri.data, res)
+    write_segmentation(out_path, res, affine, config=cfg, inputs=inputs,
+                       attrs=stage_attrs("segment", inputs, warnings, synthetic=synthetic))
     return res
 
 
@@ -207,6 +209,12 @@ def write_qc_pngs(folder, mri, res: SegmentationResult):
         ax.set_axis_off()
         ax.text(2, 2, f"slice {k}", color="yellow", fontsize=8)
         p = folder / f"slice_{k:03d}.png"
-        fig.savefig(p)
+        try:
+            fig.savefig(p)
+        except OSError as exc:  # disk full: no half PNG, one line naming it
+            p.unlink(missing_ok=True)
+            if exc.errno in WRITE_ERRNOS:
+                raise OutputError(describe_os_error(exc, p)) from None
+            raise
         paths.append(p)
     return paths
