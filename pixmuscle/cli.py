@@ -137,12 +137,28 @@ def segment(
 @app.command("build-model")
 @_guard
 def build_model(
-    config: Path = typer.Option(..., "--config", "-c", help="YAML config with a `build_model` section."),
+    segmentation: Path | None = typer.Argument(None, help=(
+        "segmentation.h5 written by `pixmuscle segment` (default: the input named in the config's build_model "
+        "section; with a `segment` section and no labels, segmentation.h5 in the current folder).")),
+    config: Path = typer.Option(..., "--config", "-c", help="YAML config (its `build_model` section, may be empty)."),
     output: Path = typer.Option(Path("model.h5"), "--output", "-o", help="Output model HDF5."),
 ) -> None:
     """Turn a label volume (NIfTI or segmentation.h5) into a pixel-point model."""
+    from .pipeline import load_config
+    from .plan import _with_segmentation
+
     mod = _load("pixmuscle.stages.build_model")
-    mod.run_build_model(_section(config, "build_model"), output, synthetic=_synthetic(config))
+    cfg = load_config(config)
+    bm = cfg.build_model
+    named = bm is not None and (getattr(bm, "labels", None) is not None or getattr(bm, "segmentation", None) is not None)
+    if segmentation is None and not named and cfg.segment is not None:
+        segmentation = Path("segmentation.h5")
+    if segmentation is not None:
+        if not segmentation.is_file():
+            raise PixmuscleError(f"{segmentation}: segmentation file not found (run `pixmuscle segment --config "
+                                 f"{config} -o {segmentation}` first)")
+        bm = _with_segmentation(bm, segmentation.resolve(), cfg.base_dir)
+    mod.run_build_model(bm, output, synthetic=cfg.synthetic)
     _out(output)
 
 
@@ -192,6 +208,12 @@ def report(
 @_guard
 def run(
     config: Path = typer.Argument(..., help="Pipeline YAML (one subject or a cohort)."),
+    output: Path | None = typer.Option(None, "--output", "-o", help=(
+        "Output folder (relative to the current folder), instead of the config's output_dir.")),
+    set_: list[str] = typer.Option([], "--set", help=(
+        "Override a config key, typed and checked like the file: --set solve.steps=5 "
+        "--set 'solve.activation={from: 0, to: 0.5}' (repeatable).")),
+    subject: str | None = typer.Option(None, "--subject", help="Run only this subject of a cohort."),
     force: bool = typer.Option(False, "--force", help="Redo stages even when their inputs are unchanged."),
     start: str | None = typer.Option(None, "--from", help="First stage: segment, build-model, coarsen, solve, report."),
     until: str | None = typer.Option(None, "--until", help="Last stage."),
@@ -204,11 +226,18 @@ def run(
     """Run segment → build-model → coarsen → solve → report, skipping up-to-date stages.
 
     A cohort (`subjects:`) or a parameter study (`study:`) runs its cases in parallel on Dask.
+    Prints on stdout, one per line, each case's report (else its results files, else its
+    folder), then the cohort/study pages.
     """
-    from .pipeline import run_pipeline
+    from .pipeline import run_cases
 
-    ok = run_pipeline(config, force=force, start=start, until=until, workers=workers, scheduler=scheduler)
-    if not ok:
+    done = run_cases(config, force=force, start=start, until=until, workers=workers, scheduler=scheduler,
+                     overrides=set_, output_dir=output, subject=subject)
+    for s in done["summaries"]:
+        made = [s["report"]] if s.get("report") else [p for p in s.get("results", {}).values() if Path(p).exists()]
+        _out(*(made or [s["output_dir"]]))
+    _out(*done["pages"])
+    if done["failures"]:
         raise typer.Exit(1)
 
 

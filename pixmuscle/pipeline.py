@@ -47,6 +47,7 @@ from typing import Any
 
 from .config import parse_section, read_yaml
 from .errors import InputError, PixmuscleError
+from .overrides import apply_overrides, parse_override
 from .plan import STAGES, plan_case, results_paths, stage_range, up_to_date  # noqa: F401  (re-exported)
 from .study import Study, parse_study, set_key
 
@@ -241,23 +242,41 @@ def _parse_execution(raw: Any, path: Path) -> tuple[str | None, int | None]:
     return sched, workers
 
 
-def load_run(path: str | Path, *, strict: bool = True) -> RunConfig:
+def load_run(path: str | Path, *, strict: bool = True, overrides=(), output_dir: str | Path | None = None,
+             subject: str | None = None) -> RunConfig:
     """Read and validate a pipeline YAML into its cases.
 
     With ``strict=False`` a case whose own section is invalid (a missing file, a bad key) is
     returned as a :class:`SubjectError` instead of raising, so the other cases can run. Errors
     of the file as a whole (unknown top-level key, duplicate subject names, a malformed study)
     always raise.
+
+    Parameters
+    ----------
+    overrides : sequence of "key.path=value"
+        ``pixmuscle run --set``: set into the file's mapping before validation (and again into
+        every subject's merged mapping, so they win over the subject entries).
+    output_dir : path-like, optional
+        ``pixmuscle run -o``: the top output folder (relative to the current folder), instead of
+        the file's ``output_dir``.
+    subject : str, optional
+        ``pixmuscle run --subject``: only this subject of a cohort (all its study cases).
     """
     path = Path(path)
-    raw = read_yaml(path)
+    sets = [parse_override(o) if isinstance(o, str) else o for o in overrides]
+    raw = apply_overrides(read_yaml(path), sets)
     unknown = sorted(set(raw) - _ROOT_KEYS)
     if unknown:
         close = difflib.get_close_matches(unknown[0], sorted(_ROOT_KEYS), n=1)
         hint = f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(sorted(_ROOT_KEYS))}"
         raise InputError(f"{path}: {unknown[0]}: unknown top-level key{hint}")
     base_dir = path.parent.resolve()
-    root = (base_dir / raw["output_dir"]).resolve() if raw.get("output_dir") else (Path.cwd() / "out" / path.stem).resolve()
+    if output_dir is not None:
+        root = Path(output_dir).resolve()
+    elif raw.get("output_dir"):
+        root = (base_dir / raw["output_dir"]).resolve()
+    else:
+        root = (Path.cwd() / "out" / path.stem).resolve()
     study = parse_study(raw.get("study"), set(SECTIONS), f"{path}: study")
     scheduler, workers = _parse_execution(raw.get("execution"), path)
     common = {k: v for k, v in raw.items() if k in _SUBJECT_KEYS}
@@ -274,6 +293,15 @@ def load_run(path: str | Path, *, strict: bool = True) -> RunConfig:
                 raise InputError(f"{path}: subjects[{i}]: expected a mapping with a 'name' string")
             name = _check_subject_name(path, i, s.get("name"), seen)
             entries.append((name, s, f"subjects[{i}].", root / name))
+    if subject is not None:
+        names = [e[0] for e in entries]
+        if subjects is None and subject != path.stem:
+            raise InputError(f"--subject {subject}: {path} has no `subjects` list (its one subject is '{path.stem}')")
+        if subject not in names:
+            close = difflib.get_close_matches(subject, names, n=1)
+            hint = f"; did you mean '{close[0]}'?" if close else f"; subjects: {', '.join(names)}"
+            raise InputError(f"--subject {subject}: no such subject in {path}{hint}")
+        entries = [e for e in entries if e[0] == subject]
     combos = [((), "")] if study is None else [
         (tuple(zip(study.keys, vals, strict=True)), cname) for vals, cname in zip(study.cases, study.names, strict=True)]
     cases = []
@@ -292,6 +320,8 @@ def load_run(path: str | Path, *, strict: bool = True) -> RunConfig:
                 if bad:
                     raise InputError(f"{path}: {where}{bad[0]}: unknown key")
                 merged = _deep_merge(common, {k: v for k, v in s.items() if k != "name"})
+                if s:
+                    merged = apply_overrides(merged, [(k, v) for k, v in sets if k.split(".")[0] in _SUBJECT_KEYS])
                 for key, value in params:
                     merged = set_key(merged, key, value, f"{path}: study.vary")
                 extra = dict(info, shared_dir=subj_dir if study else None,
@@ -302,7 +332,8 @@ def load_run(path: str | Path, *, strict: bool = True) -> RunConfig:
                     raise
                 msg = f"{exc} (study case {cname})" if cname else str(exc)
                 cases.append(SubjectError(case_name, msg, out_dir, **info))
-    return RunConfig(path, root, cases, tuple(e[0] for e in entries), subjects is not None, study, scheduler, workers)
+    return RunConfig(path, root, cases, tuple(e[0] for e in entries), subjects is not None and subject is None, study,
+                     scheduler, workers)
 
 
 def load_subjects(path: str | Path, *, strict: bool = True) -> list:
@@ -336,7 +367,8 @@ def run_subject(cfg: PipelineConfig, *, force: bool = False, start: str | None =
 
 
 def run_pipeline(path: str | Path, *, force: bool = False, start: str | None = None, until: str | None = None,
-                 workers: int | None = None, scheduler: str | None = None) -> bool:
+                 workers: int | None = None, scheduler: str | None = None, overrides=(),
+                 output_dir: str | Path | None = None, subject: str | None = None) -> bool:
     """Run every case of a config; a failing case is reported and the others go on.
 
     Parameters
@@ -351,17 +383,28 @@ def run_pipeline(path: str | Path, *, force: bool = False, start: str | None = N
         machine for several.
     scheduler : str, optional
         Address of an existing Dask scheduler (``tcp://host:port``); default ``execution.scheduler``.
+    overrides, output_dir, subject
+        As ``pixmuscle run --set``, ``-o`` and ``--subject`` (see :func:`load_run`).
 
     Returns
     -------
     bool
         True when every case succeeded. A single-case run raises its error instead.
     """
+    return not run_cases(path, force=force, start=start, until=until, workers=workers, scheduler=scheduler,
+                         overrides=overrides, output_dir=output_dir, subject=subject)["failures"]
+
+
+def run_cases(path: str | Path, *, force: bool = False, start: str | None = None, until: str | None = None,
+              workers: int | None = None, scheduler: str | None = None, overrides=(),
+              output_dir: str | Path | None = None, subject: str | None = None) -> dict:
+    """:func:`run_pipeline`, returning ``summaries`` (one per finished case: paths, stages run),
+    ``failures`` (case name → error) and ``pages`` (cohort/study pages written)."""
     from .outdir import hold_folders
     from .preflight import check_case, stage_folders
     from .runners import Progress, choose_runner
 
-    run = load_run(path, strict=False)
+    run = load_run(path, strict=False, overrides=overrides, output_dir=output_dir, subject=subject)
     cases = run.cases
     plans, failures = {}, {}
     for c in cases:
@@ -396,8 +439,8 @@ def run_pipeline(path: str | Path, *, force: bool = False, start: str | None = N
             else:
                 summaries.append(_case_summary(c, o))
         progress.finish()
-        _write_summaries(run, summaries, failures)
-    return not failures
+        pages = [] if subject else _write_summaries(run, summaries, failures)  # one subject: leave the pages alone
+    return {"summaries": summaries, "failures": failures, "pages": pages}
 
 
 def _case_summary(cfg: PipelineConfig, outcome) -> dict:
@@ -430,10 +473,10 @@ def _report_summary(s: dict) -> dict | None:
     return None
 
 
-def _write_summaries(run: RunConfig, summaries: list[dict], failures: dict[str, str]) -> None:
-    """cohort_status.json, the cohort page(s) and the study page of a run."""
+def _write_summaries(run: RunConfig, summaries: list[dict], failures: dict[str, str]) -> list[str]:
+    """cohort_status.json, the cohort page(s) and the study page of a run; returns the pages written."""
     if not run.cohort and run.study is None:
-        return
+        return []
     root = run.root_dir
     root.mkdir(parents=True, exist_ok=True)
     fail_list = [{"name": n, "error": e} for n, e in failures.items()]
@@ -442,8 +485,7 @@ def _write_summaries(run: RunConfig, summaries: list[dict], failures: dict[str, 
     from .report.cohort import cohort_summary
 
     if run.study is None:
-        cohort_summary([r for _, r in resolved if r is not None], root, failures=fail_list)
-        return
+        return [str(cohort_summary([r for _, r in resolved if r is not None], root, failures=fail_list))]
     from .report.study import study_summary
 
     rows = []
@@ -460,7 +502,8 @@ def _write_summaries(run: RunConfig, summaries: list[dict], failures: dict[str, 
             if sums or fails:
                 cohort_pages[cname] = str(cohort_summary(sums, root / STUDY_COHORTS / cname, failures=fails,
                                                          title=f"Cohort comparison — {cname}"))
-    study_summary(rows, list(run.study.keys), root, subjects=list(run.subjects), cohort_pages=cohort_pages)
+    return [str(study_summary(rows, list(run.study.keys), root, subjects=list(run.subjects),
+                              cohort_pages=cohort_pages)), *cohort_pages.values()]
 
 
 __all__ = ["PipelineConfig", "SubjectError", "RunConfig", "load_run", "load_subjects", "load_config",

@@ -234,7 +234,7 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
 
     if cfg.segment is not None and "segment" in active:
         stages.append(Stage("segment", "segment", "pixmuscle.stages.segment:run_segment",
-                            {"cfg": cfg.segment, "out_path": seg_path}, seg_path, cfg.segment,
+                            {"cfg": cfg.segment, "out_path": seg_path, "synthetic": cfg.synthetic}, seg_path, cfg.segment,
                             config_paths(cfg.segment)))
     bm = cfg.build_model
     if bm is None and cfg.segment is None:
@@ -243,11 +243,11 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
         bm = _with_segmentation(bm, seg_path, cfg.base_dir)
     if "build-model" in active:
         stages.append(Stage("build-model", "build-model", "pixmuscle.stages.build_model:run_build_model",
-                            {"cfg": bm, "out_path": model_path}, model_path, bm, config_paths(bm)))
+                            {"cfg": bm, "out_path": model_path, "synthetic": cfg.synthetic}, model_path, bm, config_paths(bm)))
     if cfg.coarsen is not None and cfg.coarsen.enabled and "coarsen" in active:
         stages.append(Stage("coarsen", "coarsen", "pixmuscle.stages.coarsen:run_coarsen",
                             {"model_path": model_path, "factor": cfg.coarsen.factor, "out_path": coarse_path,
-                             "config": cfg.coarsen}, coarse_path, cfg.coarsen, (model_path,)))
+                             "config": cfg.coarsen, "synthetic": cfg.synthetic}, coarse_path, cfg.coarsen, (model_path,)))
     results, protocols = {}, {}
     for which in cfg.models:
         mpath = coarse_path if which == "coarse" else model_path
@@ -257,7 +257,7 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
             if cfg.solve is None:
                 raise InputError(f"{cfg.name}: no `solve` section")
             stages.append(Stage("solve", f"solve ({which})", "pixmuscle.stages.solve:run_solve",
-                                {"model_path": mpath, "cfg": cfg.solve, "out_path": rpath}, rpath, cfg.solve,
+                                {"model_path": mpath, "cfg": cfg.solve, "out_path": rpath, "synthetic": cfg.synthetic}, rpath, cfg.solve,
                                 (mpath,)))
         protocols.update(_protocol_stages(cfg, which, mpath, rpath, stages if "solve" in active else None))
     if "report" in active:
