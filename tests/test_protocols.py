@@ -56,7 +56,8 @@ def test_muscle_forces_of_independent_columns(tmp_path):
     assert abs(mf["interaction"][-1]) < 1e-3 * mf["total"][-1] and np.allclose(mf["baseline"], 0.0, atol=1e-9)
     assert mf["muscles"] == ["medial", "lateral"] and set(mf["runs"]) == {"all", "baseline", "medial", "lateral"}
     # report: the tissue table's F_max column per muscle, the stacked plot and the CSV
-    summary = make_report(tmp_path / "results.h5", tmp_path / "report", ReportConfig(vtu=False, slices=False),
+    summary = make_report(tmp_path / "results.h5", tmp_path / "report",
+                          ReportConfig(vtu=False, slices=False, view3d=False),
                           extra={"muscle_forces": str(out)})
     rows = {r["region"]: r for r in summary["tissue_table"]}
     assert rows["medial"]["F_max [N]"] == pytest.approx(mf["contribution"]["medial"][-1])
@@ -76,7 +77,7 @@ def test_force_length_matches_the_homogeneous_bar_and_the_fibre_law(tmp_path):
     save_model(tmp_path / "model.h5", model)
     L0, area = shape[2] * h[2], shape[0] * h[0] * shape[1] * h[1]
     solve_cfg = parse_section(SolveConfig, dict(steps=1, boundary_conditions=roller_bcs(model, 0.0)), "solve")
-    fl = parse_section(ForceLengthConfig, dict(shortening=0.24, lengthening=0.24, points=2, activation=0.8, steps=3),
+    fl = parse_section(ForceLengthConfig, dict(shortening=0.24, lengthening=0.24, points=2, activation=0.8, steps=2),
                        "force_length")
     out = run_force_length(tmp_path / "model.h5", solve_cfg, fl, tmp_path / "fl.h5")
     c = load_force_length(out)
@@ -122,7 +123,7 @@ def test_pipeline_runs_the_protocols_and_reports_them(tmp_path):
                   "boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]},
                                           {"nodes": "z_max", "fix": ["x", "y", "z"]}]},
         "muscle_forces": {},
-        "force_length": {"shortening": 0.06, "lengthening": 0.06, "points": 1, "steps": 2, "activation": 0.5},
+        "force_length": {"shortening": 0.0, "lengthening": 0.06, "points": 1, "steps": 2, "activation": 0.5},
         "report": {"vtu": False, "slices": False, "view3d": False},
     }
     (tmp_path / "run.yaml").write_text(yaml.safe_dump(cfg))
@@ -130,7 +131,7 @@ def test_pipeline_runs_the_protocols_and_reports_them(tmp_path):
     out = tmp_path / "out"
     mf = load_muscle_forces(out / "muscle_forces_fine.h5")
     fl = load_force_length(out / "force_length_fine.h5")
-    assert set(mf["contribution"]) == {"medial", "lateral"} and fl["length"].shape == (3,)
+    assert set(mf["contribution"]) == {"medial", "lateral"} and fl["length"].shape == (2,)
     summary = __import__("json").loads((out / "report" / "summary.json").read_text())
     rows = {r["region"]: r for r in summary["tissue_table"]}
     assert rows["medial"]["F_max [N]"] == pytest.approx(mf["contribution"]["medial"][-1])
