@@ -71,7 +71,8 @@ class ForceLengthConfig:
     points: int = field(default=4, metadata={"range": (1, None), "doc": "displacements per branch "
                                                                          "(equally spaced up to the largest)"})
     activation: float | dict[str, float] = field(default=1.0, metadata={
-        "doc": "fixed activation of the active curve: a number or a mapping muscle → α with optional 'default'"})
+        "doc": "fixed activation of the active curve: a number or a mapping muscle → α with optional 'default' "
+               "(solve.activation.image, if any, multiplies it)"})
     steps: int = field(default=4, metadata={"range": (1, None), "doc": "load steps of each active solve (α and δ "
                                                                         "ramped together), and per point of a passive branch"})
 
