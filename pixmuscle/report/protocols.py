@@ -114,8 +114,11 @@ def plot_force_length(fl: Mapping, path, *, dpi: int = 120, title: str = "") -> 
     """Active, passive and total end force against muscle length."""
     fig, ax = _figure()
     L = np.asarray(fl["length"], float)
+    if "fibre_law" in fl:
+        ax.plot(L, fl["fibre_law"], color="0.55", ls="--", lw=3.0, alpha=0.6, zorder=1,
+                label="fibre law ᾱ σ_max A f_active(L/L0) (homogeneous muscle)")
     for key, style in (("total", "k-o"), ("active", "C3-s"), ("passive", "C0-^")):
-        ax.plot(L, fl[key], style, ms=4, label=key)
+        ax.plot(L, fl[key], style, ms=4, label=key, zorder=2)
     ax.axvline(fl["L0_cm"], color="0.5", lw=0.8, ls=":")
     ax.set_xlabel(f"muscle length along {fl['component']} [cm] (reference L0 = {fl['L0_cm']:.4g} cm)")
     ax.set_ylabel("end force [N]")
@@ -131,8 +134,9 @@ def plot_force_length(fl: Mapping, path, *, dpi: int = 120, title: str = "") -> 
 def force_length_section(fl: Mapping, outdir, *, dpi: int = 120, warnings: list | None = None) -> tuple[list[str], dict]:
     """Figure, CSV and HTML of a force–length sweep."""
     outdir = Path(outdir)
-    header = ["delta [cm]", "length [cm]", "stretch [-]", "total [N]", "passive [N]", "active [N]"]
-    keys = ["delta", "length", "stretch", "total", "passive", "active"]
+    header = ["delta [cm]", "length [cm]", "stretch [-]", "total [N]", "passive [N]", "active [N]",
+              "fibre law [N]"]
+    keys = ["delta", "length", "stretch", "total", "passive", "active", "fibre_law"]
     rows = [list(r) for r in zip(*[fl[k] for k in keys], strict=True)]
     csv = write_csv(outdir / "force_length.csv", header, rows)
     png = plot_force_length(fl, outdir / "force_length.png", dpi=dpi)
@@ -143,7 +147,8 @@ def force_length_section(fl: Mapping, outdir, *, dpi: int = 120, warnings: list 
     parts = ["<h2>Force–length</h2>",
              f'<p class="foot">End {esc(fl["nodes"])} displaced along {esc(fl["component"])} (shortening &lt; 0, '
              f"lengthening &gt; 0) at activation {esc(fmt(act) if not isinstance(act, dict) else act)} and at α = 0; "
-             "active = total − passive at the same length. Method: pixmuscle.mechanics.protocols. "
+             "active = total − passive at the same length; fibre law = mean α · σ_max · (muscle volume / L0) · "
+             "f_active(L/L0), eqs. 24–26, exact for a homogeneous muscle block. Method: pixmuscle.mechanics.protocols. "
              "Data: <code>force_length.csv</code>.</p>",
              img_tag(png, "force-length curves"), table(header, rows)]
     return parts, {"outputs": {"force_length_csv": str(csv), "force_length_png": str(png)}}

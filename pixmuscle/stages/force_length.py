@@ -9,6 +9,7 @@
     /total     (P,) N    end force at the fixed activation
     /passive   (P,) N    end force at α = 0
     /active    (P,) N    total − passive
+    /fibre_law (P,) N    ᾱ σ_max A f_active(L/(L0 λ̂0)), A = muscle volume / L0 (:func:`fibre_law_force`)
     attrs: L0_cm, nodes, component, activation (JSON), force_sets (JSON), runs (JSON: run → status)
 
 Points are sorted by length; NaN where a run did not converge.
@@ -89,6 +90,7 @@ def _run(model_path, solve_cfg, cfg, out_path, warnings, synthetic) -> Path:
     deltas = np.array(sorted(set(active) | set(passive)))
     tot = np.array([active.get(d, np.nan) for d in deltas])
     pas = np.array([passive.get(d, np.nan) for d in deltas])
+    law = fibre_law_force(model, solve_cfg, cases[0]["cfg"], L0, (L0 + deltas) / L0)
 
     def write(f):
         write_dataset(f, "delta", deltas, units="cm")
@@ -97,6 +99,7 @@ def _run(model_path, solve_cfg, cfg, out_path, warnings, synthetic) -> Path:
         write_dataset(f, "total", tot, units="N")
         write_dataset(f, "passive", pas, units="N")
         write_dataset(f, "active", tot - pas, units="N")
+        write_dataset(f, "fibre_law", law, units="N")
 
     act = cfg.activation if isinstance(cfg.activation, dict) else float(cfg.activation)
     attrs = {"L0_cm": L0, "nodes": cfg.nodes, "component": cfg.component, "activation": json.dumps(act),
@@ -109,10 +112,29 @@ def _run(model_path, solve_cfg, cfg, out_path, warnings, synthetic) -> Path:
     return Path(out_path)
 
 
+def fibre_law_force(model, solve_cfg, active_cfg, L0: float, stretch) -> np.ndarray:
+    """Reference: the fibre force–length law (eqs. 24–26) of the model's muscle as one homogeneous bar, (P,) N.
+
+    ᾱ σ_max A f_active(λ/λ̂0), with A = muscle volume / L0 (mean muscle cross-section), ᾱ the mean
+    end-of-ramp α of the active runs over the muscle nodes and λ = L/L0. Exact for a homogeneous
+    muscle block between roller ends (nearly incompressible); elsewhere a yardstick only.
+    """
+    from ..mechanics.activation import ActivationRamp
+    from ..mechanics.materials import f_active
+    from ..model.tissues import MUSCLE
+
+    muscle = np.asarray(model.tissue) == MUSCLE
+    ramp = model_activation(model, active_cfg) or ActivationRamp.uniform(active_cfg.alpha_from, active_cfg.alpha_to,
+                                                                          muscle)
+    m = solve_cfg.materials.muscle
+    area = float(muscle.sum()) * model.cell_volume / L0
+    return ramp.mean(1.0) * m.sigma_max * area * f_active(np.asarray(stretch, float) / m.lambda_opt)
+
+
 def load_force_length(path) -> dict:
     """Read ``force_length_<model>.h5``: arrays and decoded attributes."""
     with open_stage(path, schema=SCHEMA, version=VERSION) as f:
-        out = {k: f[k][()] for k in ("delta", "length", "stretch", "total", "passive", "active")}
+        out = {k: f[k][()] for k in ("delta", "length", "stretch", "total", "passive", "active", "fibre_law")}
         out.update(L0_cm=float(f.attrs["L0_cm"]), nodes=str(f.attrs["nodes"]), component=str(f.attrs["component"]),
                    activation=json.loads(f.attrs["activation"]), force_sets=json.loads(f.attrs["force_sets"]),
                    runs=json.loads(f.attrs["runs"]))

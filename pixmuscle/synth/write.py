@@ -126,7 +126,19 @@ def generate_samples(outdir="data/synthetic", names=None) -> dict:
         out["tendon"] = {"labels": write_tendon_labels(outdir)}
         out["leg_demo_dwi"] = write_dwi_sample(outdir)
         out["leg_demo_activation"] = {"image": write_activation_sample(outdir)}
+        out["muscle_block"] = {"labels": write_muscle_block_labels(outdir)}
     return out
+
+
+def write_muscle_block_labels(outdir="data/synthetic", shape=(5, 5, 10), h=(0.25, 0.25, 0.3)) -> Path:
+    """Label volume of a homogeneous muscle block (label 1), voxel (0, 0, 0) centred at the origin (cm).
+
+    Used by ``configs/force_length.yaml``: between roller ends it stays homogeneous, so its
+    force–length curves are the material law's (:mod:`pixmuscle.mechanics.homogeneous`).
+    """
+    path = Path(outdir) / "muscle_block_labels.nii.gz"
+    save_volume(path, np.ones(shape, np.int16), np.diag([*h, 1.0]), kind="labels")
+    return path
 
 
 def write_activation_sample(outdir="data/synthetic", prefix: str = "leg_demo") -> Path:
