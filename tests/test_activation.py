@@ -135,3 +135,16 @@ def test_activation_image_force_matches_columns(tmp_path):
     make_report(tmp_path / "results.h5", tmp_path / "report", ReportConfig(vtu=False, slices=False, view3d=False))
     page = (tmp_path / "report" / "index.html").read_text()
     assert "Activation per muscle" in page and "0.4375" in page
+
+
+def test_cli_set_takes_a_per_muscle_mapping():
+    """`--set solve.activation.to={...}` is read as YAML and validated like the same key in the file."""
+    from pathlib import Path
+
+    from pixmuscle.pipeline import load_run
+
+    cfg = Path(__file__).resolve().parents[1] / "configs" / "demo.yaml"
+    run = load_run(cfg, overrides=["solve.activation.to={soleus: 0.9, default: 0.1}"])
+    assert run.cases[0].solve.activation["to"] == {"soleus": 0.9, "default": 0.1}
+    with pytest.raises(InputError, match="solve.activation.to.solues: unknown muscle 'solues'"):
+        load_run(cfg, overrides=["solve.activation.to={solues: 0.9}"])
