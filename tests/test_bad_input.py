@@ -279,16 +279,20 @@ def test_nan_in_yaml_text_exit_2(phantom, tmp_path):
 
 # --------------------------------------------------------------------------- 9, 10, 8: output folder and disk
 @needs_mount
-def test_disk_full_stage_file(solved, tmp_path):
+@pytest.mark.parametrize("size, expected", [
+    ("64k", "not enough free disk space for the results of this solve"),   # refused before solving
+    ("128k", "not enough free disk space: the file needs"),               # the file's exact size, after it
+])
+def test_disk_full_stage_file(solved, tmp_path, size, expected):
     """Point 8: a stage file that does not fit: one line with the path and the free space, nothing left."""
     out, cfg = solved
     c = write_config(tmp_path / "c.yaml", {"solve": cfg["solve"]})
     target = tmp_path / "small" / "results.h5"
-    r = in_tmpfs(target.parent, "size=64k", "solve", out / "model_coarse.h5", "-c", c, "-o", target)
+    r = in_tmpfs(target.parent, f"size={size}", "solve", out / "model_coarse.h5", "-c", c, "-o", target)
     assert r.returncode == 2, r.stderr
     line = error_line(r.stderr)
-    assert str(target) in line and "free" in line
-    assert "LEFT: \n" in r.stdout or r.stdout.strip() == "LEFT:"
+    assert str(target) in line and expected in line and "MB free" in line
+    assert r.stdout.strip() == "LEFT:"
 
 
 @needs_mount
