@@ -82,9 +82,11 @@ def prepare_output_dir(path: str | os.PathLike, what: str = "output_dir") -> Pat
             break
     try:
         path.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".pixmuscle-write-test.", suffix=PARTIAL_SUFFIX, dir=path)
+        fd, probe = tempfile.mkstemp(prefix=f".pixmuscle-write-test.{socket.gethostname()}.{os.getpid()}.",
+                                     suffix=PARTIAL_SUFFIX, dir=path)
         os.close(fd)
-        os.unlink(probe)
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(probe)
     except OSError as exc:
         raise InputError(f"{what} {path}: not writable ({exc.strerror or exc})") from None
     return path
@@ -149,13 +151,30 @@ def hold_folders(folders) -> Iterator[list[Path]]:
         yield folders
 
 
-def remove_leftovers(folder: str | os.PathLike) -> list[Path]:
-    """Remove hidden ``.*.partial`` files and folders under ``folder`` (left by killed writes).
+def _writer_alive(p: Path) -> bool:
+    """``.<name>.<host>.<pid>.<random>.partial`` of a process of this host that still runs."""
+    parts = p.name[: -len(PARTIAL_SUFFIX)].rsplit(".", 2)
+    if len(parts) != 3 or not parts[1].isdigit() or not parts[0].endswith("." + socket.gethostname()):
+        return False
+    try:
+        os.kill(int(parts[1]), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
-    Call only with :func:`output_lock` held. Returns the removed paths (they are logged).
+
+def remove_leftovers(folder: str | os.PathLike) -> list[Path]:
+    """Remove hidden ``.*.partial`` files and folders in ``folder`` (left by killed writes).
+
+    Call only with :func:`output_lock` held; temporaries of a live process of this host are kept.
+    Returns the removed paths (they are logged).
     """
     removed = []
     for p in sorted(Path(folder).glob(f".*{PARTIAL_SUFFIX}")):  # temporaries sit beside their target
+        if _writer_alive(p):  # e.g. a single-stage command writing here right now
+            continue
         try:
             if p.is_dir() and not p.is_symlink():
                 shutil.rmtree(p)

@@ -374,12 +374,14 @@ def test_leftover_partials_are_removed(solved, tmp_path):
     host, pid = socket.gethostname(), dead_pid()
     (out / f".results_coarse.h5.{host}.{pid}.x1y2.partial").write_bytes(b"half an HDF5 file")
     (out / ".results_coarse.h5.old_style.partial").write_bytes(b"from an older version")
+    live = out / f".model.h5.{host}.{os.getpid()}.k5l6.partial"       # a writer that still runs: kept
+    live.write_bytes(b"being written")
     killed_report = out / f".report.{host}.{pid}.z3w4.partial"
     killed_report.mkdir()
     (killed_report / "force_activation.csv").write_text("alpha\n0\n")
     r = cli("run", cfg_path, "--from", "report")
     assert r.exit_code == 0, r.stderr
-    assert leftovers(out) == []
+    assert leftovers(out) == [live.name]
     assert (out / "report/index.html").exists()
     assert ".partial" not in (out / "report/summary.json").read_text()     # paths name the final folder
 
