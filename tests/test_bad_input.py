@@ -134,7 +134,27 @@ def in_tmpfs(mount: Path, options: str, *args) -> subprocess.CompletedProcess:
                           capture_output=True, text=True)
 
 
-# --------------------------------------------------------------------------- 1, 13: failed solve
+# --------------------------------------------------------------------------- 1, 13: failed solves
+def test_failed_solve_rewrites_the_report_as_failed(solved, tmp_path):
+    """Point 1 and 13: after a complete run, a failing solve leaves a report that says failed."""
+    cfg_path, out = copy_run(solved, tmp_path)
+    assert json.loads((out / "report/summary.json").read_text())["status"] == "complete"
+    raw = yaml.safe_load(cfg_path.read_text())
+    raw["solve"]["newton"] = {"max_iterations": 2, "max_cutbacks": 0}   # step 1 cannot converge in 2 iterations
+    write_config(cfg_path, raw)
+    r = cli("run", cfg_path)
+    assert r.exit_code == 2
+    assert "load step 1 of 2" in error_line(r.stderr)
+    with h5py.File(out / "results_coarse.h5") as f:
+        assert str(f.attrs["status"]).startswith("failed")
+    summary = json.loads((out / "report/summary.json").read_text())
+    assert summary["failed"] and summary["status"].startswith("failed: load step 1 of 2")
+    assert summary["curve"]["converged"] == [True]                       # the converged steps are shown
+    html = (out / "report/index.html").read_text()
+    assert "did not complete" in html and "load step 1 of 2" in html
+    assert leftovers(out) == []
+
+
 def test_max_iterations_one_is_a_config_error(solved, tmp_path):
     """Point 13: a setting that can never converge is refused before any work."""
     cfg_path, out = copy_run(solved, tmp_path)
@@ -188,7 +208,7 @@ def test_cutbacks_stop_when_they_cannot_help():
     assert np.allclose(np.tanh(records[-1].state.d), 0.9)
 
 
-# --------------------------------------------------------------------------- 2, 16, 17: report as a unit, leftovers
+# --------------------------------------------------------------------------- 2, 16, 17: the report as a unit, leftovers
 def test_report_failing_midway_leaves_the_old_report_untouched(solved, tmp_path):
     """Point 2 and 17: the report folder is replaced as a unit; a failure half-way changes nothing."""
     _, out = copy_run(solved, tmp_path)
@@ -199,6 +219,24 @@ def test_report_failing_midway_leaves_the_old_report_untouched(solved, tmp_path)
     after = {p.relative_to(out): p.read_bytes() for p in (out / "report").rglob("*") if p.is_file()}
     assert after == before
     assert leftovers(out) == []
+
+
+def test_leftover_partials_are_removed(solved, tmp_path):
+    """Point 16 and 17: temporaries of killed writes (stage file, report folder) are swept."""
+    cfg_path, out = copy_run(solved, tmp_path)
+    host, pid = socket.gethostname(), dead_pid()
+    (out / f".results_coarse.h5.{host}.{pid}.x1y2.partial").write_bytes(b"half an HDF5 file")
+    (out / ".results_coarse.h5.old_style.partial").write_bytes(b"from an older version")
+    live = out / f".model.h5.{host}.{os.getpid()}.k5l6.partial"       # a writer that still runs: kept
+    live.write_bytes(b"being written")
+    killed_report = out / f".report.{host}.{pid}.z3w4.partial"
+    killed_report.mkdir()
+    (killed_report / "force_activation.csv").write_text("alpha\n0\n")
+    r = cli("run", cfg_path, "--from", "report")
+    assert r.exit_code == 0, r.stderr
+    assert leftovers(out) == [live.name]
+    assert (out / "report/index.html").exists()
+    assert ".partial" not in (out / "report/summary.json").read_text()     # paths name the final folder
 
 
 def test_write_stage_removes_temporaries_of_dead_writers_only(tmp_path):
@@ -222,8 +260,63 @@ def _umask() -> int:
     return m
 
 
-# --------------------------------------------------------------------------- 4: one run per output folder
+# --------------------------------------------------------------------------- 3, 4: unique subjects, one run per output folder
+def test_duplicate_subject_names(phantom, tmp_path):
+    """Point 3 (the check is issue 13's, in pipeline.load_run): refused before anything is written."""
+    cfg = base_config(phantom, tmp_path / "cohort")
+    cfg["subjects"] = [{"name": "young"}, {"name": "young", "solve": {"steps": 1}}]
+    c = write_config(tmp_path / "c.yaml", cfg)
+    r = cli("run", c)
+    assert r.exit_code == 2
+    assert f"{c}: subjects[1].name: 'young' is already the name of subjects[0]" in error_line(r.stderr)
+    assert not (tmp_path / "cohort").exists()
+
+
+def test_second_run_into_a_locked_folder_refuses(solved, tmp_path):
+    """Point 4: a run holding the folder makes another run refuse, naming the holder."""
+    cfg_path, out = copy_run(solved, tmp_path)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from pixmuscle.outdir import output_lock\n"
+         f"with output_lock({str(out)!r}):\n    print('locked', flush=True); sys.stdin.read()"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        r = proc("run", cfg_path)
+        line = error_line(r.stderr)
+        assert r.returncode == 2 and "in use by another pixmuscle run" in line and f"pid {holder.pid}" in line
+    finally:
+        holder.stdin.close()
+        holder.wait()
+    r = cli("run", cfg_path, "--from", "report")  # the lock went with its holder
+    assert r.exit_code == 0, r.stderr
+
+
 # --------------------------------------------------------------------------- 5: DTI without signal
+def test_dti_hole_in_a_muscle_is_reported(phantom, tmp_path):
+    """Point 5: zero tensors over part of the muscle: warning with voxel counts, in the log and the report."""
+    d, seed = phantom
+    img = nib.load(d / "mg_dti_tensor.nii.gz")
+    assert img.header.get_xyzt_units()[0] == "mm"
+    data = np.asarray(img.dataobj).copy()
+    world = nib.affines.apply_affine(img.affine, np.indices(data.shape[:3]).reshape(3, -1).T).reshape(*data.shape[:3], 3)
+    dx, dy = world[..., 0] - 10 * seed[0], world[..., 1] - 10 * seed[1]   # mm from the seed
+    data[(dx > -12) & (dx < -3) & (np.abs(dy) < 6)] = 0                    # a hole beside (not on) the seed
+    hole = tmp_path / "dti_hole.nii.gz"
+    nib.save(nib.Nifti1Image(data, img.affine, img.header), hole)
+    cfg = base_config(phantom, tmp_path / "out")
+    cfg["segment"]["dti_tensor"] = str(hole)
+    cfg["solve"]["steps"] = 1
+    cfg["report"] = {"vtu": False, "slices": False, "html": True}
+    r = cli("run", write_config(tmp_path / "c.yaml", cfg))
+    assert r.exit_code == 0, r.stderr
+    assert "DTI has no signal" in r.stderr and "medial_gastrocnemius" in r.stderr and "DTI" not in r.stdout
+    with h5py.File(tmp_path / "out/segmentation.h5") as f:
+        counts = f["qc/no_signal_voxels"][()]
+    assert counts[0] > 0
+    warnings = json.loads((tmp_path / "out/report/summary.json").read_text())["warnings"]
+    assert any("DTI has no signal" in w and f"medial_gastrocnemius {counts[0]}" in w for w in warnings)
+
+
 # --------------------------------------------------------------------------- 6, 20: boundary conditions
 def test_point_bc_far_outside_the_body(solved, tmp_path):
     """Point 6: a point farther than one cell from every node is an error naming the BC."""
@@ -234,6 +327,16 @@ def test_point_bc_far_outside_the_body(solved, tmp_path):
     assert r.exit_code == 2
     assert "solve.boundary_conditions[1].point: [0.0, 0.0, 162.0] cm is" in error_line(r.stderr)
     assert not (tmp_path / "r.h5").exists() and leftovers(tmp_path) == []
+
+
+def test_missing_node_set_is_caught_before_any_stage(phantom, tmp_path):
+    """Point 20: a BC naming a set the model will not have stops the run before segmenting."""
+    cfg = base_config(phantom, tmp_path / "out")
+    cfg["solve"]["boundary_conditions"][1]["nodes"] = "z_top"
+    r = cli("run", write_config(tmp_path / "c.yaml", cfg))
+    assert r.exit_code == 2
+    assert "solve.boundary_conditions[1].nodes: node set 'z_top' does not exist" in error_line(r.stderr)
+    assert not (tmp_path / "out/segmentation.h5").exists()
 
 
 # --------------------------------------------------------------------------- 7, 12, 15, 18: config files
@@ -277,7 +380,35 @@ def test_nan_in_yaml_text_exit_2(phantom, tmp_path):
     assert not (tmp_path / "out").exists()
 
 
-# --------------------------------------------------------------------------- 9, 10, 8: output folder and disk
+# --------------------------------------------------------------------------- 8, 9, 10: output folder and disk
+def test_output_dir_that_is_a_file(phantom, tmp_path):
+    """Point 10."""
+    (tmp_path / "out").write_text("not a folder")
+    r = cli("run", write_config(tmp_path / "c.yaml", base_config(phantom, tmp_path / "out")))
+    assert r.exit_code == 2 and f"output_dir {tmp_path / 'out'}: is a file, expected a folder" in error_line(r.stderr)
+
+
+@needs_mount
+def test_read_only_output_folder_is_refused_before_work(phantom, tmp_path):
+    """Point 9: checked before segmentation (a read-only file system stops even root)."""
+    cfg = write_config(tmp_path / "c.yaml", base_config(phantom, tmp_path / "ro" / "out"))
+    r = in_tmpfs(tmp_path / "ro", "ro", "run", cfg)
+    assert r.returncode == 2
+    assert f"output_dir {tmp_path / 'ro' / 'out'}: not writable (Read-only file system)" in error_line(r.stderr)
+    assert "outer boundary" not in r.stderr                              # no stage started
+
+
+@needs_mount
+def test_read_only_output_of_a_stage_command_is_refused_before_work(solved, tmp_path):
+    """Point 9 for a single stage: `pixmuscle solve -o <read-only>/r.h5` stops before solving."""
+    out, cfg = solved
+    c = write_config(tmp_path / "c.yaml", {"solve": cfg["solve"]})
+    r = in_tmpfs(tmp_path / "ro", "ro", "solve", out / "model_coarse.h5", "-c", c, "-o", tmp_path / "ro" / "r.h5")
+    assert r.returncode == 2
+    assert f"output folder {tmp_path / 'ro'}: not writable (Read-only file system)" in error_line(r.stderr)
+    assert "load step" not in r.stdout + r.stderr
+
+
 @needs_mount
 @pytest.mark.parametrize("size, expected", [
     ("64k", "not enough free disk space for the results of this solve"),   # refused before solving
@@ -308,6 +439,20 @@ def test_disk_full_while_writing_vtu(solved, tmp_path):
     assert r.stdout.strip() == "LEFT:"
 
 
+@needs_mount
+def test_disk_full_during_the_segment_side_outputs(phantom, tmp_path):
+    """Point 8: the NIfTI/PNG side outputs of segment do not fit: one line, and no segmentation.h5
+    (the stage file is written last, so the stage is not taken as done)."""
+    cfg = write_config(tmp_path / "c.yaml", base_config(phantom, tmp_path / "unused"))
+    target = tmp_path / "small"
+    r = in_tmpfs(target, "size=24k", "segment", "-c", cfg, "-o", target / "segmentation.h5")
+    assert r.returncode == 2, r.stderr + r.stdout
+    line = error_line(r.stderr)
+    assert "No space left on device" in line and "free" in line and str(target) in line
+    left = r.stdout.split("LEFT:", 1)[1].split()
+    assert "segmentation.h5" not in left and not [n for n in left if n.startswith(".")]
+
+
 # --------------------------------------------------------------------------- 11: model file missing a dataset
 def test_model_missing_a_dataset(solved, tmp_path):
     out, cfg = solved
@@ -332,7 +477,7 @@ def test_two_muscles_with_the_same_seed(phantom, tmp_path):
     assert not (tmp_path / "out/segmentation.h5").exists()
 
 
-# --------------------------------------------------------------------------- 21: decreasing activation
+# --------------------------------------------------------------------------- 19, 21: log on stderr, decreasing activation
 def test_decreasing_ramp_is_allowed_and_logged_on_stderr(solved, tmp_path):
     """Point 21: a relaxation ramp (from > to) runs, and the log says so; point 19: on stderr."""
     out, cfg = solved
@@ -345,151 +490,3 @@ def test_decreasing_ramp_is_allowed_and_logged_on_stderr(solved, tmp_path):
     with h5py.File(tmp_path / "r.h5") as f:
         assert f.attrs["status"] == "complete"
         np.testing.assert_allclose(f["steps/alpha"][()], [0.5, 0.3, 0.1])
-
-
-# --------------------------------------------------------------------------- run-level cases (pipeline hooks)
-def test_failed_solve_rewrites_the_report_as_failed(solved, tmp_path):
-    """Point 1 and 13: after a complete run, a failing solve leaves a report that says failed."""
-    cfg_path, out = copy_run(solved, tmp_path)
-    assert json.loads((out / "report/summary.json").read_text())["status"] == "complete"
-    raw = yaml.safe_load(cfg_path.read_text())
-    raw["solve"]["newton"] = {"max_iterations": 2, "max_cutbacks": 0}   # step 1 cannot converge in 2 iterations
-    write_config(cfg_path, raw)
-    r = cli("run", cfg_path)
-    assert r.exit_code == 2
-    assert "load step 1 of 2" in error_line(r.stderr)
-    with h5py.File(out / "results_coarse.h5") as f:
-        assert str(f.attrs["status"]).startswith("failed")
-    summary = json.loads((out / "report/summary.json").read_text())
-    assert summary["failed"] and summary["status"].startswith("failed: load step 1 of 2")
-    assert summary["curve"]["converged"] == [True]                       # the converged steps are shown
-    html = (out / "report/index.html").read_text()
-    assert "did not complete" in html and "load step 1 of 2" in html
-    assert leftovers(out) == []
-
-
-def test_leftover_partials_are_removed(solved, tmp_path):
-    """Point 16 and 17: temporaries of killed writes (stage file, report folder) are swept."""
-    cfg_path, out = copy_run(solved, tmp_path)
-    host, pid = socket.gethostname(), dead_pid()
-    (out / f".results_coarse.h5.{host}.{pid}.x1y2.partial").write_bytes(b"half an HDF5 file")
-    (out / ".results_coarse.h5.old_style.partial").write_bytes(b"from an older version")
-    live = out / f".model.h5.{host}.{os.getpid()}.k5l6.partial"       # a writer that still runs: kept
-    live.write_bytes(b"being written")
-    killed_report = out / f".report.{host}.{pid}.z3w4.partial"
-    killed_report.mkdir()
-    (killed_report / "force_activation.csv").write_text("alpha\n0\n")
-    r = cli("run", cfg_path, "--from", "report")
-    assert r.exit_code == 0, r.stderr
-    assert leftovers(out) == [live.name]
-    assert (out / "report/index.html").exists()
-    assert ".partial" not in (out / "report/summary.json").read_text()     # paths name the final folder
-
-
-def test_second_run_into_a_locked_folder_refuses(solved, tmp_path):
-    """Point 4: a run holding the folder makes another run refuse, naming the holder."""
-    cfg_path, out = copy_run(solved, tmp_path)
-    holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from pixmuscle.outdir import output_lock\n"
-         f"with output_lock({str(out)!r}):\n    print('locked', flush=True); sys.stdin.read()"],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    try:
-        assert holder.stdout.readline().strip() == "locked"
-        r = proc("run", cfg_path)
-        line = error_line(r.stderr)
-        assert r.returncode == 2 and "in use by another pixmuscle run" in line and f"pid {holder.pid}" in line
-    finally:
-        holder.stdin.close()
-        holder.wait()
-    r = cli("run", cfg_path, "--from", "report")  # the lock went with its holder
-    assert r.exit_code == 0, r.stderr
-
-
-def test_dti_hole_in_a_muscle_is_reported(phantom, tmp_path):
-    """Point 5: zero tensors over part of the muscle: warning with voxel counts, in the log and the report."""
-    d, seed = phantom
-    img = nib.load(d / "mg_dti_tensor.nii.gz")
-    assert img.header.get_xyzt_units()[0] == "mm"
-    data = np.asarray(img.dataobj).copy()
-    world = nib.affines.apply_affine(img.affine, np.indices(data.shape[:3]).reshape(3, -1).T).reshape(*data.shape[:3], 3)
-    dx, dy = world[..., 0] - 10 * seed[0], world[..., 1] - 10 * seed[1]   # mm from the seed
-    data[(dx > -12) & (dx < -3) & (np.abs(dy) < 6)] = 0                    # a hole beside (not on) the seed
-    hole = tmp_path / "dti_hole.nii.gz"
-    nib.save(nib.Nifti1Image(data, img.affine, img.header), hole)
-    cfg = base_config(phantom, tmp_path / "out")
-    cfg["segment"]["dti_tensor"] = str(hole)
-    cfg["solve"]["steps"] = 1
-    cfg["report"] = {"vtu": False, "slices": False, "html": True}
-    r = cli("run", write_config(tmp_path / "c.yaml", cfg))
-    assert r.exit_code == 0, r.stderr
-    assert "DTI has no signal" in r.stderr and "medial_gastrocnemius" in r.stderr and "DTI" not in r.stdout
-    with h5py.File(tmp_path / "out/segmentation.h5") as f:
-        counts = f["qc/no_signal_voxels"][()]
-    assert counts[0] > 0
-    warnings = json.loads((tmp_path / "out/report/summary.json").read_text())["warnings"]
-    assert any("DTI has no signal" in w and f"medial_gastrocnemius {counts[0]}" in w for w in warnings)
-
-
-def test_missing_node_set_is_caught_before_any_stage(phantom, tmp_path):
-    """Point 20: a BC naming a set the model will not have stops the run before segmenting."""
-    cfg = base_config(phantom, tmp_path / "out")
-    cfg["solve"]["boundary_conditions"][1]["nodes"] = "z_top"
-    r = cli("run", write_config(tmp_path / "c.yaml", cfg))
-    assert r.exit_code == 2
-    assert "solve.boundary_conditions[1].nodes: node set 'z_top' does not exist" in error_line(r.stderr)
-    assert not (tmp_path / "out/segmentation.h5").exists()
-
-
-def test_output_dir_that_is_a_file(phantom, tmp_path):
-    """Point 10."""
-    (tmp_path / "out").write_text("not a folder")
-    r = cli("run", write_config(tmp_path / "c.yaml", base_config(phantom, tmp_path / "out")))
-    assert r.exit_code == 2 and f"output_dir {tmp_path / 'out'}: is a file, expected a folder" in error_line(r.stderr)
-
-
-@needs_mount
-def test_read_only_output_folder_is_refused_before_work(phantom, tmp_path):
-    """Point 9: checked before segmentation (a read-only file system stops even root)."""
-    cfg = write_config(tmp_path / "c.yaml", base_config(phantom, tmp_path / "ro" / "out"))
-    r = in_tmpfs(tmp_path / "ro", "ro", "run", cfg)
-    assert r.returncode == 2
-    assert f"output_dir {tmp_path / 'ro' / 'out'}: not writable (Read-only file system)" in error_line(r.stderr)
-    assert "outer boundary" not in r.stderr                              # no stage started
-
-
-@needs_mount
-def test_read_only_output_of_a_stage_command_is_refused_before_work(solved, tmp_path):
-    """Point 9 for a single stage: `pixmuscle solve -o <read-only>/r.h5` stops before solving."""
-    out, cfg = solved
-    c = write_config(tmp_path / "c.yaml", {"solve": cfg["solve"]})
-    r = in_tmpfs(tmp_path / "ro", "ro", "solve", out / "model_coarse.h5", "-c", c, "-o", tmp_path / "ro" / "r.h5")
-    assert r.returncode == 2
-    assert f"output folder {tmp_path / 'ro'}: not writable (Read-only file system)" in error_line(r.stderr)
-    assert "load step" not in r.stdout + r.stderr
-
-
-
-
-def test_duplicate_subject_names(phantom, tmp_path):
-    """Point 3 (the check is issue 13's, in pipeline.load_run): refused before anything is written."""
-    cfg = base_config(phantom, tmp_path / "cohort")
-    cfg["subjects"] = [{"name": "young"}, {"name": "young", "solve": {"steps": 1}}]
-    c = write_config(tmp_path / "c.yaml", cfg)
-    r = cli("run", c)
-    assert r.exit_code == 2
-    assert f"{c}: subjects[1].name: 'young' is already the name of subjects[0]" in error_line(r.stderr)
-    assert not (tmp_path / "cohort").exists()
-
-
-@needs_mount
-def test_disk_full_during_the_segment_side_outputs(phantom, tmp_path):
-    """Point 8: the NIfTI/PNG side outputs of segment do not fit: one line, and no segmentation.h5
-    (the stage file is written last, so the stage is not taken as done)."""
-    cfg = write_config(tmp_path / "c.yaml", base_config(phantom, tmp_path / "unused"))
-    target = tmp_path / "small"
-    r = in_tmpfs(target, "size=24k", "segment", "-c", cfg, "-o", target / "segmentation.h5")
-    assert r.returncode == 2, r.stderr + r.stdout
-    line = error_line(r.stderr)
-    assert "No space left on device" in line and "free" in line and str(target) in line
-    left = r.stdout.split("LEFT:", 1)[1].split()
-    assert "segmentation.h5" not in left and not [n for n in left if n.startswith(".")]
