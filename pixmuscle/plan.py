@@ -222,14 +222,10 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
     """
     a, b = stage_range(start, until)
     active = set(STAGES[a:b + 1])
-    shared = cfg.shared_dir or cfg.output_dir
 
-    def folder(kind: str) -> Path:
-        return cfg.output_dir if SECTION_OF[kind] in cfg.varied_sections() else shared
-
-    seg_path = folder("segment") / "segmentation.h5"
-    model_path = folder("build-model") / "model.h5"
-    coarse_path = folder("coarsen") / "model_coarse.h5"
+    seg_path = stage_dir(cfg, "segment") / "segmentation.h5"
+    model_path = stage_dir(cfg, "build-model") / "model.h5"
+    coarse_path = stage_dir(cfg, "coarsen") / "model_coarse.h5"
     stages: list[Stage] = []
 
     if cfg.segment is not None and "segment" in active:
@@ -248,11 +244,10 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
         stages.append(Stage("coarsen", "coarsen", "pixmuscle.stages.coarsen:run_coarsen",
                             {"model_path": model_path, "factor": cfg.coarsen.factor, "out_path": coarse_path,
                              "config": cfg.coarsen, "synthetic": cfg.synthetic}, coarse_path, cfg.coarsen, (model_path,)))
-    results, protocols = {}, {}
+    results, protocols = results_paths(cfg), {}
     for which in cfg.models:
         mpath = coarse_path if which == "coarse" else model_path
-        rpath = cfg.output_dir / f"results_{which}.h5"
-        results[which] = rpath
+        rpath = results[which]
         if "solve" in active:
             if cfg.solve is None:
                 raise InputError(f"{cfg.name}: no `solve` section")
@@ -309,6 +304,14 @@ def _protocol_stages(cfg: Any, which: str, mpath: Path, rpath: Path, stages: lis
     return out
 
 
+def stage_dir(cfg: Any, kind: str) -> Path:
+    """Folder of a stage's output: the case folder, or in a study the subject folder shared by its
+    cases when the study varies neither this stage's config section nor any section before it."""
+    if cfg.shared_dir is None or SECTION_OF[kind] in cfg.varied_sections():
+        return cfg.output_dir
+    return cfg.shared_dir
+
+
 def results_paths(cfg: Any) -> dict[str, Path]:
     """model name → results file of a case (whether or not it exists yet)."""
-    return {which: cfg.output_dir / f"results_{which}.h5" for which in cfg.models}
+    return {which: stage_dir(cfg, "solve") / f"results_{which}.h5" for which in cfg.models}

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import os
 import signal
 from pathlib import Path
@@ -162,3 +163,45 @@ def test_killed_worker_is_retried_once_then_reported(phantoms, tmp_path, cluster
         assert fail["name"] == "old" and "died" in fail["error"] and "solve" in fail["error"]
         assert not (tmp_path / "kill" / "old" / "results_coarse.h5").exists()
         assert "old" in (tmp_path / "kill" / "cohort.html").read_text()
+
+
+def test_failing_case_is_reported_and_the_others_finish(phantoms, tmp_path, cluster):
+    broken = tmp_path / "broken_labels.nii.gz"
+    broken.write_bytes(b"not a NIfTI file")
+    inputs = {"young": phantoms["young"], "broken": {"labels": str(broken), "fibers": phantoms["young"]["fibers"]}}
+    cfg = _config(tmp_path / "fail.yaml", tmp_path / "fail", inputs)
+    records = []
+    handler = logging.Handler()
+    handler.emit = records.append
+    log = logging.getLogger("pixmuscle.runners")
+    log.addHandler(handler)
+    old_level = log.level
+    log.setLevel(logging.INFO)
+    try:
+        assert run_pipeline(cfg, scheduler=cluster) is False
+    finally:
+        log.removeHandler(handler)
+        log.setLevel(old_level)
+    status = json.loads((tmp_path / "fail" / "cohort_status.json").read_text())
+    assert [s["name"] for s in status["ok"]] == ["young"]
+    [fail] = status["failed"]
+    assert fail["name"] == "broken" and fail["error"].startswith("build-model: ") and "broken_labels.nii.gz" in fail["error"]
+    assert (tmp_path / "fail" / "young" / "report" / "index.html").exists()
+    # progress: one line per case and state, a total after each finished case
+    lines = [r.getMessage() for r in records]
+    for who in ("young", "broken"):
+        assert f"{who}: queued" in lines and f"{who}: running" in lines
+    assert any(x.startswith("young: done in ") for x in lines)
+    assert any(x.startswith("broken: failed after ") and "broken_labels.nii.gz" in x for x in lines)
+    assert any(x.startswith("total: 1/2 finished") and "ETA" in x for x in lines)
+
+
+def test_cli_workers_option(phantoms, tmp_path):
+    from typer.testing import CliRunner
+
+    from pixmuscle.cli import app
+
+    cfg = _config(tmp_path / "cli.yaml", tmp_path / "cli", phantoms)
+    res = CliRunner().invoke(app, ["-q", "run", str(cfg), "--workers", "2"])
+    assert res.exit_code == 0, res.output
+    assert len(_rows(tmp_path / "cli" / "cohort.csv")) == 2

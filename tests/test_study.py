@@ -99,6 +99,12 @@ def test_study_cases_folders_and_shared_stages(tmp_path):
     stages = {s.kind: s for s in plan_case(c)}
     assert stages["build-model"].output == root / "model.h5"
     assert stages["coarsen"].output == root / "factor=1" / "model_coarse.h5"
+    # a report-only study solves once and writes one report per case
+    p = _labels_config(tmp_path, study={"vary": {"report.dpi": [40, 80]}})
+    stages = {s.kind: s for s in plan_case(load_run(p).cases[1])}
+    assert stages["solve"].output == root / "results_coarse.h5"
+    assert stages["report"].output.parent == root / "dpi=80" / "report"
+    assert stages["report"].kwargs["results_path"] == root / "results_coarse.h5"
 
 
 def test_study_value_errors_are_per_case(tmp_path):
@@ -117,3 +123,17 @@ def test_execution_section(tmp_path):
     p = _labels_config(tmp_path, execution={"workers": -1})
     with pytest.raises(InputError, match="execution.workers"):
         load_run(p)
+
+
+def test_report_layer_does_not_import_the_stages_layer():
+    import ast
+
+    import pixmuscle.report
+
+    for f in Path(pixmuscle.report.__file__).parent.glob("*.py"):
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                mod = ("." * node.level) + (node.module or "")
+                assert "stages" not in mod.split("."), f"{f.name} imports {mod}"
+            elif isinstance(node, ast.Import):
+                assert not any("pixmuscle.stages" in a.name for a in node.names), f.name

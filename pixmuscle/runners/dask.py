@@ -45,14 +45,15 @@ def local_cluster(n_workers: int) -> Iterator[str]:
     """A ``LocalCluster`` of ``n_workers`` processes (one thread each) for one run; yields its address.
 
     Killed workers are restarted by their nanny and a task is retried once after a worker death
-    (``allowed-failures: 1``). No dashboard is started.
+    (``allowed-failures: 1``). The scheduler's HTTP server (dashboard, if bokeh is installed) takes
+    a free port, so that several runs, or another cluster on 8787, do not collide.
     """
     import dask
     from distributed import LocalCluster
 
     with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
         cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None, env=thread_environment(n_workers))
+                               dashboard_address=":0", env=thread_environment(n_workers))
     try:
         yield cluster.scheduler_address
     finally:
