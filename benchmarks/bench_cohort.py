@@ -81,13 +81,18 @@ def run_dask(config: Path, workers: int = 2) -> dict:
 
 def write_md(results: dict, path: Path) -> None:
     lines = ["## bench_cohort: cohort and study, serial vs `--workers 2`", "",
-             f"Machine: {results['machine']}. **Shared with other agents' jobs while measured** (2 cores, "
-             "several concurrent sessions): wall times include their load.", "",
-             "| part | cases | mode | wall (s) | peak RSS (MB) | command |", "|---|---|---|---|---|---|"]
+             f"Machine: {results['machine']}. **Shared with other agents' jobs while measured** (several "
+             "concurrent sessions on the same cores; the 1-minute load average at the start and end of each run is "
+             "given): wall times include their load, and a serial / dask ratio above the number of workers means "
+             "that load changed between the two runs, not that Dask is faster than parallel.", "",
+             "| part | cases | mode | wall (s) | load avg (start/end) | peak RSS (MB) | command |",
+             "|---|---|---|---|---|---|---|"]
     for key, r in sorted(results["runs"].items()):
         part, mode = key.split(":")
         peaks = ", ".join(f"{k} {v:.0f}" for k, v in r["peak_rss_mb"].items())
-        lines.append(f"| {part} | {r['cases']} | {mode} | {r['wall_s']:.1f} | {peaks} | `{r['command']}` |")
+        la = r.get("load_average_1min")
+        load = f"{la['start']:.1f}/{la['end']:.1f}" if la else "not recorded (≈10–11 by uptime)"
+        lines.append(f"| {part} | {r['cases']} | {mode} | {r['wall_s']:.1f} | {load} | {peaks} | `{r['command']}` |")
     for part in CONFIGS:
         s, d = results["runs"].get(f"{part}:serial"), results["runs"].get(f"{part}:dask")
         if s and d:
@@ -115,8 +120,9 @@ def main(argv=None) -> int:
         n = len(load_subjects(cfg))
         for mode in args.mode:
             print(f"== {part} ({n} cases), {mode}", flush=True)
+            load0 = os.getloadavg()[0]
             r = run_serial(cfg) if mode == "serial" else run_dask(cfg)
-            r.update(cases=n, measured_utc=time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
+            r.update(cases=n, load_average_1min={"start": load0, "end": os.getloadavg()[0]}, measured_utc=time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
                      command=f"python benchmarks/bench_cohort.py --part {part} --mode {mode}")
             print(json.dumps(r, indent=1), flush=True)
             results["runs"][f"{part}:{mode}"] = r

@@ -502,8 +502,10 @@ def _write_summaries(run: RunConfig, summaries: list[dict], failures: dict[str, 
             if sums or fails:
                 cohort_pages[cname] = str(cohort_summary(sums, root / STUDY_COHORTS / cname, failures=fails,
                                                          title=f"Cohort comparison — {cname}"))
-    return [str(study_summary(rows, list(run.study.keys), root, subjects=list(run.subjects),
-                              cohort_pages=cohort_pages)), *cohort_pages.values()]
+    title = next((c.title for c in run.cases if isinstance(c, PipelineConfig)), "")
+    page = study_summary(rows, list(run.study.keys), root, subjects=list(run.subjects), cohort_pages=cohort_pages,
+                         title=f"Parameter study — {title}" if title else "Parameter study")
+    return [str(page), *cohort_pages.values()]
 
 
 __all__ = ["PipelineConfig", "SubjectError", "RunConfig", "load_run", "load_subjects", "load_config",

@@ -151,9 +151,8 @@ def _answer(dep: Mapping[str, Any], keys: Sequence[str], ref: str) -> list[str]:
     parts = [f"<h2>Does the ratio of force per unit volume to {H.esc(ref)}'s depend on the varied parameters?</h2>"]
     for s, d in dep.items():
         big = d["spread"] >= RATIO_TOLERANCE
-        verdict = (f"<b>Yes</b>: over these {d['n']} combinations it changes by {100 * d['spread']:.1f} % of its mean"
-                   if big else
-                   f"<b>Hardly</b>: over these {d['n']} combinations it changes by only {100 * d['spread']:.2f} % of its mean")
+        verdict = (f"<b>Yes, by {100 * d['spread']:.1f} %</b> of its mean over these {d['n']} combinations" if big else
+                   f"<b>Hardly</b>: it changes by only {100 * d['spread']:.2f} % of its mean over these {d['n']} combinations")
         per = "; ".join(f"{H.esc(k)} alone: up to {100 * v:.2f} %" for k, v in d["per_key"].items())
         parts.append(f"<p>{H.esc(s)} / {H.esc(ref)}: {verdict} (from {d['min']:.4g} to {d['max']:.4g}, mean "
                      f"{d['mean']:.4g}). Changing one key with the others fixed: {per}.</p>")
