@@ -140,29 +140,26 @@ class KillOnStage(distributed.WorkerPlugin):
                 os.kill(os.getpid(), signal.SIGKILL)
 
 
-@pytest.mark.parametrize("times", [1, 2])
-def test_killed_worker_is_retried_once_then_reported(phantoms, tmp_path, cluster, times):
-    cfg = _config(tmp_path / "kill.yaml", tmp_path / "kill", phantoms)
-    marks = tmp_path / "marks"
-    marks.mkdir()
-    with distributed.Client(cluster) as client:
-        client.register_plugin(KillOnStage(str(marks), "old:solve", times))
-        try:
-            ok = run_pipeline(cfg, scheduler=cluster)
-        finally:
-            client.unregister_worker_plugin(KillOnStage.name)
-            client.wait_for_workers(2, timeout=60)
-    status = json.loads((tmp_path / "kill" / "cohort_status.json").read_text())
-    assert len(list(marks.glob("kill-*"))) == times
-    assert "young" in [s["name"] for s in status["ok"]]
-    if times == 1:   # one death: the solve ran again on a fresh worker and the case is complete
-        assert ok and [s["name"] for s in status["ok"]] == ["young", "old"]
-    else:            # died again on the retry: reported, nothing half-written
-        assert not ok
-        [fail] = status["failed"]
-        assert fail["name"] == "old" and "died" in fail["error"] and "solve" in fail["error"]
-        assert not (tmp_path / "kill" / "old" / "results_coarse.h5").exists()
-        assert "old" in (tmp_path / "kill" / "cohort.html").read_text()
+def test_killed_worker_is_retried_once_then_reported(phantoms, tmp_path):
+    with local_cluster(2) as own, distributed.Client(own) as client:   # its own cluster: workers get killed
+        for times in (1, 2):
+            cfg = _config(tmp_path / f"kill{times}.yaml", tmp_path / f"kill{times}", phantoms)
+            marks = tmp_path / f"marks{times}"
+            marks.mkdir()
+            client.register_plugin(KillOnStage(str(marks), "old:solve", times))
+            ok = run_pipeline(cfg, scheduler=own)
+            status = json.loads((tmp_path / f"kill{times}" / "cohort_status.json").read_text())
+            assert len(list(marks.glob("kill-*"))) == times
+            assert "young" in [s["name"] for s in status["ok"]]
+            if times == 1:   # one death: the solve ran again on a fresh worker and the case is complete
+                assert ok and [s["name"] for s in status["ok"]] == ["young", "old"]
+                client.wait_for_workers(2, timeout=120)
+            else:            # died again on the retry: reported, nothing half-written
+                assert not ok
+                [fail] = status["failed"]
+                assert fail["name"] == "old" and "died" in fail["error"] and "solve" in fail["error"]
+                assert not (tmp_path / "kill2" / "old" / "results_coarse.h5").exists()
+                assert "old" in (tmp_path / "kill2" / "cohort.html").read_text()
 
 
 def test_failing_case_is_reported_and_the_others_finish(phantoms, tmp_path, cluster):
