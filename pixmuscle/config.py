@@ -89,6 +89,8 @@ def _coerce(value: Any, tp: Any, where: str, base_dir: Path, meta: Mapping) -> A
                 raise errors[a]
         raise InputError(f"{where}: expected {_typename(tp)}, got {_got(value)}")
     if origin is Literal:
+        if isinstance(value, str) and value not in args:  # choices are case-insensitive
+            value = next((a for a in args if isinstance(a, str) and a.lower() == value.lower()), value)
         if value not in args:
             close = difflib.get_close_matches(str(value), [str(a) for a in args], n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
@@ -127,6 +129,13 @@ def _coerce(value: Any, tp: Any, where: str, base_dir: Path, meta: Mapping) -> A
             raise InputError(f"{where}: file not found: {p}")
         return p
     if origin in (list, tuple):
+        item0 = args[0] if args else Any
+        open_ended = origin is list or (origin is tuple and (not args or args[-1] is Ellipsis))
+        if open_ended and item0 in (float, int) and isinstance(value, (int, float)) and not isinstance(value, bool):
+            value = [value]  # one number where a list of numbers is expected ("1 value or K")
+        elif (open_ended and typing.get_origin(item0) in (list, tuple) and isinstance(value, (list, tuple)) and value
+              and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
+            value = [value]  # one point where a list of points is expected
         if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)):
             raise InputError(f"{where}: expected {_typename(tp)}, got {_got(value)}")
         if origin is tuple and args and args[-1] is not Ellipsis:

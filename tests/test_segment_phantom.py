@@ -156,3 +156,20 @@ def test_segment_stage_files(leg, result, tmp_path):
     # missing inputs are reported by key
     with pytest.raises(InputError, match="dti"):
         run_segment(dataclasses.replace(cfg, dti_tensor=None), tmp_path / "x.h5")
+
+
+def test_seed_next_to_a_muscle_is_moved_with_a_warning(leg):
+    """A click one or two voxels off the muscle (on a voxel without fibre data: here a fat or
+    connective-tissue voxel) is moved to the nearest muscle voxel, and the stage says so."""
+    from pixmuscle.io.lineage import capture_warnings
+
+    ph, d, covered, seeds = leg
+    k = ph.mri.shape[2] // 2
+    sol = ph.muscle_names.index("soleus") + 1
+    near = ndi.distance_transform_edt(ph.muscle_id[:, :, k] != sol)
+    off = np.argwhere((near >= 1.5) & (near <= 2.5) & np.isin(ph.labels[:, :, k], (3, 4)))[0]
+    moved = dict(seeds, soleus=[list((ph.affine @ [off[0], off[1], k, 1.0])[:3])])
+    with capture_warnings() as w:
+        res = segment_volume(ph.mri, ph.affine, d, covered, ph.imct_mask, ph.imat_mask, SegmentConfig(seeds=moved))
+    assert any(x.startswith("segment.seeds.soleus: seed at voxel") and "moved" in x for x in w), w
+    assert dice(res.muscle_id == sol, ph.muscle_id == sol) >= 0.85

@@ -179,3 +179,19 @@ def test_committed_samples():
         np.testing.assert_array_equal(mid.data > 0, lab.data == 1)
     readme = (DATA / "README.md").read_text().lower()
     assert "synthetic" in readme and "not patient data" in readme
+
+
+def test_synthetic_readme_lists_every_shipped_file():
+    """data/synthetic/README.md names every phantom and file shipped in that folder."""
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parents[1] / "data" / "synthetic"
+    text = (folder / "README.md").read_text()
+    for f in sorted(folder.iterdir()):
+        if f.name == "README.md":
+            continue
+        stem = f.name.split(".")[0]
+        prefix = next((p for p in ("leg_demo", "leg_small", "mg_young_small", "mg_old_small")
+                       if stem.startswith(p + "_") and stem[len(p) + 1:] in
+                       ("mri", "dti_tensor", "dti_V1", "labels", "muscle_id", "imct", "imat", "fibers", "truth")), None)
+        assert (f"`{prefix}`" in text) if prefix else (stem in text), f.name

@@ -98,6 +98,22 @@ def _voxel_to_world(data, kind, components, affine, tensor_order):
     return components_from_tensor(d, tensor_order)
 
 
+def file_affine_cm(path) -> np.ndarray:
+    """Voxel index → world cm of the NIfTI file's **own** voxel grid (as stored, before the
+    reorientation of :func:`load_volume`), shape ``(4, 4)``."""
+    path = Path(path)
+    try:
+        img = nib.load(str(path))
+    except Exception as exc:  # nibabel raises several types for unreadable files
+        _fail(path, f"not a readable NIfTI file ({type(exc).__name__}: {exc})")
+    unit = img.header.get_xyzt_units()[0]
+    if unit not in UNIT_TO_CM:
+        _fail(path, f"unsupported spatial unit {unit!r}; expected mm, meter or micron")
+    a = np.asarray(img.affine, dtype=float).copy()
+    a[:3, :] *= UNIT_TO_CM[unit]
+    return a
+
+
 def load_volume(path, *, kind: str = "image", components: str = "world", tensor_order: str = "fsl",
                 allow_empty: bool = False) -> Volume:
     """Read a NIfTI file in cm and closest-canonical RAS+ orientation.

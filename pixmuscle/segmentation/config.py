@@ -135,9 +135,10 @@ class SegmentConfig:
     imat_mask: Path | None = field(default=None, metadata={
         "must_exist": True, "doc": "IMAT mask (NIfTI, any grid): labelled fat"})
     seeds: dict[str, list[list[float]]] = field(default_factory=dict, metadata={
-        "doc": "muscle name -> list of seed points [x, y, z] inside that muscle (order = ids)"})
-    seed_units: Literal["cm", "voxel"] = field(default="cm", metadata={
-        "doc": "seed coordinates: world cm (through the MRI affine) or MRI voxel indices"})
+        "doc": "muscle name -> seed point [x, y, z] or list of points inside that muscle (order = ids)"})
+    seed_units: Literal["cm", "mm", "voxel"] = field(default="cm", metadata={
+        "doc": "seed coordinates: world cm or mm (scanner coordinates, as a viewer shows them), or voxel "
+               "indices (i, j, k) of the MRI file as stored (as ITK-SNAP/FSLeyes show them)"})
     mode: Literal["slice", "3d"] = field(default="slice", metadata={
         "doc": "level sets per 2-D slice (the paper) or on the whole volume"})
     outer: TwoPhaseConfig = field(default_factory=TwoPhaseConfig, metadata={
@@ -159,6 +160,9 @@ class SegmentConfig:
     qc_png: bool = field(default=True, metadata={"doc": "write per-slice overlay PNGs"})
 
     def __post_init__(self):
+        if self.dti_tensor is not None and self.dti_v1 is not None:
+            raise InputError("segment.dti_v1: give either dti_tensor (preferred: tensors are interpolated "
+                             "correctly) or dti_v1, not both")
         if self.dwi is not None and (self.dti_tensor is not None or self.dti_v1 is not None):
             raise InputError("segment.dwi: give either a DWI series (dwi) or a fitted DTI "
                              "(dti_tensor / dti_v1), not both")

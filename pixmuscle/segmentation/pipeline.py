@@ -101,8 +101,10 @@ def seeds_to_voxels(seeds, units, affine, shape):
     Parameters
     ----------
     seeds : dict of str -> list of [x, y, z]
-        Muscle name -> points, in world cm (``units="cm"``) or voxel indices (``"voxel"``).
-    units : {"cm", "voxel"}
+        Muscle name -> points, in world cm (``units="cm"``), world mm (``"mm"``) or voxel
+        indices of this (canonical, RAS+) grid (``"voxel"``; the segment stage converts voxel
+        indices of the file's own grid to cm first, see :func:`pixmuscle.imaging.nifti.file_affine_cm`).
+    units : {"cm", "mm", "voxel"}
     affine : ndarray, shape ``(4, 4)``
         MRI voxel index -> world cm.
     shape : tuple of 3 int
@@ -116,10 +118,10 @@ def seeds_to_voxels(seeds, units, affine, shape):
     inv = np.linalg.inv(affine)
     for name, pts in seeds.items():
         p = np.asarray(pts, dtype=float).reshape(-1, 3)
-        if units == "cm":
-            p = p @ inv[:3, :3].T + inv[:3, 3]
+        if units in ("cm", "mm"):
+            p = (p * (0.1 if units == "mm" else 1.0)) @ inv[:3, :3].T + inv[:3, 3]
         elif units != "voxel":
-            raise InputError(f"segment.seed_units: expected 'cm' or 'voxel', got {units!r}")
+            raise InputError(f"segment.seed_units: expected 'cm', 'mm' or 'voxel', got {units!r}")
         ijk = np.rint(p).astype(np.int64)
         bad = np.any((ijk < 0) | (ijk >= np.array(shape)), axis=1)
         if bad.any():
@@ -436,6 +438,13 @@ def segment_volume(mri, affine, dti_tensor_on_grid, covered, imct_mask, imat_mas
 
     # 4. muscles
     seeds_t = [_snap(s[:, [2, 0, 1]], domain, n) for n, s in zip(names, seeds_ijk, strict=True)]
+    for n, before, after in zip(names, seeds_ijk, seeds_t, strict=True):  # loop over muscles
+        moved = np.flatnonzero(np.any(before[:, [2, 0, 1]] != after, axis=1))
+        for q in moved:
+            d = np.linalg.norm((after[q] - before[q, [2, 0, 1]]) * spacing)
+            _LOG.warning("segment.seeds.%s: seed at voxel (i, j, k) = %s is not on a muscle voxel (fibre data inside "
+                         "the leg, not bone); moved %.2g cm to the nearest one, %s", n, tuple(int(c) for c in before[q]),
+                         d, tuple(int(c) for c in after[q][[1, 2, 0]]))
     _check_distinct_seeds(names, [s[:, [1, 2, 0]] for s in seeds_t], "after moving seeds into the muscle")
     mp = cfg.multiphase
     chans = []

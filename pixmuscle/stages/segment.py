@@ -14,6 +14,7 @@ and writes
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from pixmuscle.imaging.dti import (
     resample_vectors_to_grid,
     tensor_from_components,
 )
-from pixmuscle.imaging.nifti import load_volume, save_volume
+from pixmuscle.imaging.nifti import file_affine_cm, load_volume, save_volume
 from pixmuscle.imaging.resample import resample_labels
 from pixmuscle.io.lineage import capture_warnings, stage_attrs
 from pixmuscle.outdir import WRITE_ERRNOS, describe_os_error, prepare_output_dir
@@ -114,8 +115,20 @@ def run_segment(cfg, out_path, progress=None, *, synthetic=False):
     return res
 
 
+def seeds_in_cm(cfg) -> dict:
+    """The seeds of ``cfg`` in world cm: mm divided by 10, voxel indices of the MRI file's own
+    grid through the file's affine (not the reoriented grid the segmentation works on)."""
+    if cfg.seed_units == "cm":
+        return cfg.seeds
+    if cfg.seed_units == "mm":
+        return {k: (np.asarray(v, float) * 0.1).tolist() for k, v in cfg.seeds.items()}
+    a = file_affine_cm(cfg.mri)
+    return {k: (np.asarray(v, float).reshape(-1, 3) @ a[:3, :3].T + a[:3, 3]).tolist() for k, v in cfg.seeds.items()}
+
+
 def _segment(cfg, qc_dir, progress):
     """Read the inputs and segment: (MRI volume, SegmentationResult, input paths)."""
+    cfg = dataclasses.replace(cfg, seeds=seeds_in_cm(cfg), seed_units="cm")
     mri = load_volume(cfg.mri, kind="image")
     shape, affine = mri.data.shape, mri.affine
     d_grid, covered = _dti_on_grid(cfg, shape, affine, qc_dir)
