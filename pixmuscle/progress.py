@@ -96,7 +96,12 @@ def setup_logging(verbosity: int = 0, stream=None) -> logging.Handler:
 
 
 def _fmt_fields(fields: dict) -> str:
-    return " ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in fields.items())
+    def one(k, v):
+        if k == "residual" and isinstance(v, float) and v == 0.0:
+            return "residual below round-off"
+        return f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
+
+    return " ".join(one(k, v) for k, v in fields.items())
 
 
 def _eta(done: float, total: float, elapsed: float) -> str:

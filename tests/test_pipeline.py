@@ -100,6 +100,14 @@ def test_run_end_to_end(first_run):
     np.testing.assert_allclose(cd["displacement [cm]"][0], u_last, rtol=1e-6, atol=1e-12)
     html = (out / "report/index.html").read_text()
     assert "data:image/png;base64" in html and "synthetic" in html.lower()
+    # segmentation QC in the report: per-slice areas equal the voxel counts of segmentation.h5 (h5py)
+    assert "Segmentation QC" in html and (out / "report" / "segmentation_qc.png").exists()
+    with h5py.File(out / "segmentation.h5") as f:
+        labels, aff = f["labels"][()], f["affine"][()]
+    px = np.prod(np.linalg.norm(aff[:3, :3], axis=0)[:2])
+    with open(out / "report/segmentation_areas.csv") as fh:
+        areas = list(csv.DictReader(fh))
+    np.testing.assert_allclose([float(r["muscle [cm^2]"]) for r in areas], (labels == 1).sum(axis=(0, 1)) * px, rtol=1e-12)
 
 
 def test_rerun_skips_and_config_change_reruns_only_downstream(first_run):

@@ -19,6 +19,7 @@ class ReportConfig:
 
     vtu: bool = field(default=True, metadata={"doc": "write the ParaView VTU time series (fields/*.vtu + fields.pvd): the model's voxel cells with cell and point data"})
     xdmf: bool = field(default=True, metadata={"doc": "also write the series as XDMF + HDF5 (fields.xdmf, fields.h5) for large models"})
+    segmentation_qc: bool = field(default=True, metadata={"doc": "segmentation QC section: MRI with the labels filled in and per-slice areas (needs the segment stage's file)"})
     view3d: bool = field(default=True, metadata={"doc": "3-D picture of the model and the fields on the deformed body (VTK off-screen, else matplotlib)"})
     slices: bool = field(default=True, metadata={"doc": "write the slice figures of |u| and max principal stress"})
     html: bool = field(default=True, metadata={"doc": "write the self-contained index.html"})

@@ -21,6 +21,7 @@ from .config import ReportConfig
 #: sections of the page, in order (key → heading)
 SECTIONS = {
     "force": "Force–activation",
+    "segmentation": "Segmentation QC",
     "model": "Model in 3-D",
     "slices": "Fields on slices",
     "solver": "Solver and Newton statistics",
@@ -109,6 +110,36 @@ def _compare_curves(compare: dict, main: Path | None, ctx: Context) -> dict:
         except (InputError, OSError) as exc:
             ctx.warnings.append(f"comparison curve '{lab}' not drawn: {exc}")
     return curves
+
+
+@figure("segmentation_qc", "segmentation", "MRI with the segmentation filled in (muscles by name, connective "
+                                              "tissue, fat, bone); axes in cm")
+def _segmentation(ctx: Context) -> Path | None:
+    if not ctx.cfg.segmentation_qc:
+        return None
+    from ..imaging.nifti import load_volume
+    from .segmentation_qc import find_segmentation, plot_overlays, read_segmentation, slice_areas
+
+    seg_path, mri_path, note = find_segmentation(ctx.summary.get("stages", []))
+    if seg_path is None:
+        ctx.summary["segmentation_qc"] = {"note": note}
+        return None
+    try:
+        seg = read_segmentation(seg_path)
+    except (KeyError, OSError) as exc:
+        ctx.summary["segmentation_qc"] = {"note": f"segmentation file {seg_path} not readable ({exc})"}
+        return None
+    mri = None
+    if mri_path is not None:
+        try:
+            mri = load_volume(mri_path, kind="image").data
+        except InputError as exc:
+            note = f"MRI not shown: {exc}"
+    header, rows = slice_areas(seg["labels"], seg["muscle_id"], seg["names"], seg["affine"])
+    ctx.summary["segmentation_qc"] = {"file": str(seg_path), "mri": str(mri_path) if mri_path else None, "note": note,
+                                      "areas_header": header, "areas": rows}
+    C.write_csv(ctx.outdir / "segmentation_areas.csv", header, rows)
+    return plot_overlays(mri, seg, ctx.outdir / "segmentation_qc.png", dpi=ctx.cfg.dpi)
 
 
 @figure("view3d", "model", "The model coloured by muscle and tissue, and |u| and the largest principal stress on "

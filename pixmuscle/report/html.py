@@ -205,6 +205,23 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
     parts.append(f'<p class="foot">{esc(tissue["footnote"])} Cell volume {fmt(tissue["cell_volume_cm3"])} cm³. '
                  "Data (with node counts): <code>tissue_table.csv</code>.</p>")
 
+    qc = summary.get("segmentation_qc") or {}
+    seg_figs = _figures(figures, "segmentation")
+    if seg_figs or qc:
+        parts.append(f"<h2>{esc(SECTIONS['segmentation'])}</h2>")
+        parts += seg_figs
+        if qc.get("note"):
+            parts.append(f'<p class="foot">{esc(qc["note"])}</p>')
+        seg_w = _warning_groups(summary["warnings"]).get("segment", [])
+        if seg_w:
+            parts.append("<p><b>Warnings of the segment stage:</b></p><ul>"
+                         + "".join(f"<li>{esc(w)}</li>" for w in seg_w) + "</ul>")
+        if qc.get("areas"):
+            parts.append("<h3>Area per slice [cm²]</h3>")
+            parts.append(table([html_units(h) for h in qc["areas_header"]], qc["areas"]))
+            parts.append(f'<p class="foot">From <code>{esc(qc["file"])}</code>; data: '
+                         "<code>segmentation_areas.csv</code>.</p>")
+
     model_figs = _figures(figures, "model")
     if model_figs:
         parts.append(f"<h2>{esc(SECTIONS['model'])}</h2>")

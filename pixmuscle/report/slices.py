@@ -97,16 +97,29 @@ def plot_slices(ijk, origin, spacing, values, path, *, label: str, title: str, p
         vmax = vmin + max(abs(vmin), 1.0) * 1e-6
     at = plane_indices(ijk, origin, spacing) if planes_at is None else np.asarray(planes_at)
     cm = plt.get_cmap(cmap).with_extremes(bad="white")
-    fig, axes = plt.subplots(1, 3, figsize=(13.0, 4.6), layout="compressed")
-    im = None
-    for ax, (pname, (ax_n, h, v)) in zip(axes, PLANES.items(), strict=True):  # three planes
+    panels = []
+    for pname, (ax_n, h, v) in PLANES.items():  # three planes
         img, lo = plane_image(ijk, values, ax_n, int(at[ax_n]), h, v)
         x0 = origin[h] + (lo[0] - 0.5) * spacing[h]
         y0 = origin[v] + (lo[1] - 0.5) * spacing[v]
-        extent = (x0, x0 + img.shape[1] * spacing[h], y0, y0 + img.shape[0] * spacing[v])
+        panels.append((pname, ax_n, h, v, img, x0, y0, (x0, x0 + img.shape[1] * spacing[h], y0, y0 + img.shape[0] * spacing[v])))
+    widths = [e[1] - e[0] for *_, e in panels]
+    height = max(e[3] - e[2] for *_, e in panels)
+    # figure height from the panels' true aspect: no empty bands above and below
+    fig_h = min(9.0, max(3.0, 11.0 * height / sum(widths) + (2.3 if vectors is not None else 1.9)))
+    fig, axes = plt.subplots(1, 3, figsize=(13.0, fig_h), layout="constrained", gridspec_kw={"width_ratios": widths})
+    arrow = None
+    if vectors is not None:
+        vin = np.asarray(vectors, float)
+        umax = float(np.nanmax(np.linalg.norm(vin, axis=1))) if np.isfinite(vin).any() else 0.0
+        # one scale for all panels: the largest displacement is drawn 1.5 arrow spacings long
+        step_cm = max(w / 16 for w in widths)
+        arrow = (umax, umax / (1.5 * step_cm)) if umax > 0 else None
+    im = None
+    for ax, (pname, ax_n, h, v, img, x0, y0, extent) in zip(axes, panels, strict=True):
         im = ax.imshow(np.ma.masked_invalid(img), origin="lower", extent=extent, cmap=cm, vmin=vmin, vmax=vmax,
                        interpolation="nearest", aspect="equal")
-        if vectors is not None:
+        if arrow is not None:
             vec, _ = plane_image(ijk, np.asarray(vectors, float)[:, [h, v]], ax_n, int(at[ax_n]), h, v)
             sh = max(1, img.shape[1] // 16)
             sv = max(1, img.shape[0] // 16)
@@ -114,13 +127,18 @@ def plot_slices(ijk, origin, spacing, values, path, *, label: str, title: str, p
             vx, vy = vec[ii, jj, 0], vec[ii, jj, 1]
             ok = np.isfinite(vx) & np.isfinite(vy)
             if ok.any():
-                ax.quiver(x0 + (jj[ok] + 0.5) * spacing[h], y0 + (ii[ok] + 0.5) * spacing[v], vx[ok], vy[ok],
-                          color="k", width=0.004, alpha=0.8)
+                q = ax.quiver(x0 + (jj[ok] + 0.5) * spacing[h], y0 + (ii[ok] + 0.5) * spacing[v], vx[ok], vy[ok],
+                              color="k", width=0.004, alpha=0.8, angles="xy", scale_units="xy", scale=arrow[1])
+                if ax is axes[0]:
+                    key = float(f"{arrow[0]:.1g}")
+                    ax.quiverkey(q, 0.02, -0.24, key, f"{key:g} cm displacement (arrows {1 / arrow[1]:.3g}× true length)",
+                                 labelpos="E", coordinates="axes", fontproperties={"size": 8})
         pos = origin[ax_n] + at[ax_n] * spacing[ax_n]
         ax.set_title(f"{pname}: {AXIS[ax_n]} = {pos:.3g} cm")
         ax.set_xlabel(f"{AXIS[h]} [cm]")
         ax.set_ylabel(f"{AXIS[v]} [cm]")
-    fig.colorbar(im, ax=list(axes), label=label, shrink=0.9)
+    cb = fig.colorbar(im, ax=list(axes), label=label, fraction=0.025, pad=0.01, aspect=12)
+    cb.ax.tick_params(labelsize=9)
     fig.suptitle(title)
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
