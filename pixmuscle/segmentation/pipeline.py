@@ -132,6 +132,27 @@ def seeds_to_voxels(seeds, units, affine, shape):
     return names, points
 
 
+def bone_slice_warnings(per_slice, fraction: float = 0.5) -> list[str]:
+    """Warnings for slices whose bone area dropped below ``fraction`` of the median of the
+    slices that have bone (a bone lost or cut short by the level sets in that slice).
+
+    Parameters
+    ----------
+    per_slice : (K,) int
+        Bone voxels in each slice.
+    """
+    n = np.asarray(per_slice, float)
+    if not (n > 0).any():  # no bone at all (e.g. a single muscle's scan): nothing was lost
+        return []
+    med = float(np.median(n[n > 0]))
+    low = np.flatnonzero(n < fraction * med)
+    if low.size == 0:
+        return []
+    detail = ", ".join(f"{int(k)} ({int(n[k])} voxels)" for k in low[:20])
+    return [f"bone lost or much smaller in slice(s) {detail} (median of the slices with bone: {med:.0f} voxels); "
+            "check the QC overlays and the segment.bone settings"]
+
+
 def _zero_tensor(tensor, covered) -> np.ndarray:
     """Voxels inside the DTI field of view whose tensor is all zero (no diffusion signal)."""
     t = np.asarray(tensor)
@@ -424,6 +445,8 @@ def segment_volume(mri, affine, dti_tensor_on_grid, covered, imct_mask, imat_mas
     bone = _bones(dark, bright, spacing, cfg)
     qc["bone_bright_iterations"], qc["bone_dark_iterations"] = it1, it2
     qc["bone_converged"] = cv1 & cv2
+    for w in bone_slice_warnings(bone.reshape(bone.shape[0], -1).sum(axis=1)):
+        _LOG.warning("%s", w)
     step("bones", voxels=int(bone.sum()))
 
     # 3. fibre data
