@@ -67,6 +67,60 @@ def _fill(ptr, nodes, g, A, w, indptr, indices, data, ijk, reach, wide):  # prag
                         data[lo, i, k] += h0 * t[i, 0, k] + h1 * t[i, 1, k] + h2 * t[i, 2, k]
 
 
+@numba.njit(cache=True, nogil=True)
+def _patch_vectors(ptr, nodes, g, a, wv, patch_of, pptr, pnodes, out):  # pragma: no cover - compiled
+    """out[pos(p, I), i] += wv[L] Σ_k a[L, i, k] g[(L, I), k] for every cell L of patch p = patch_of[L]."""
+    nc = ptr.shape[0] - 1
+    for L in range(nc):
+        p = patch_of[L]
+        w = wv[L]
+        for bb in range(ptr[L], ptr[L + 1]):
+            node = nodes[bb]
+            lo = pptr[p]
+            hi = pptr[p + 1] - 1
+            while lo < hi:
+                mid = (lo + hi) >> 1
+                if pnodes[mid] < node:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            for i in range(3):
+                out[lo, i] += w * (a[L, i, 0] * g[bb, 0] + a[L, i, 1] * g[bb, 1] + a[L, i, 2] * g[bb, 2])
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill_rank1(pptr, pnodes, v, coef, indptr, indices, data, ijk, reach, wide):  # pragma: no cover - compiled
+    """data[(I, J)] += coef[p] v[(p, I)] ⊗ v[(p, J)] for every patch p and node pair of its support."""
+    npatch = pptr.shape[0] - 1
+    filtered = reach >= 0
+    for p in range(npatch):
+        c = coef[p]
+        if c == 0.0:
+            continue
+        s = pptr[p]
+        e = pptr[p + 1]
+        for aa in range(s, e):
+            na = pnodes[aa]
+            for bb in range(s, e):
+                nb = pnodes[bb]
+                if filtered and not (wide[na] or wide[nb]) and (
+                        abs(ijk[na, 0] - ijk[nb, 0]) > reach or abs(ijk[na, 1] - ijk[nb, 1]) > reach
+                        or abs(ijk[na, 2] - ijk[nb, 2]) > reach):
+                    continue
+                lo = indptr[na]
+                hi = indptr[na + 1] - 1
+                while lo < hi:
+                    mid = (lo + hi) >> 1
+                    if indices[mid] < nb:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                for i in range(3):
+                    ci = c * v[aa, i]
+                    for k in range(3):
+                        data[lo, i, k] += ci * v[bb, k]
+
+
 def _int_dtype(n: int):
     return np.int32 if n < np.iinfo(np.int32).max else np.int64
 
@@ -104,6 +158,10 @@ class Assembler:
     wide : (N_nodes,) bool, optional
         Nodes whose every pair is kept in a filtered pattern (nodes with enlarged RK supports,
         which couple further than the nominal support).
+    patches : CSR (N_patches, N_cells), optional
+        Patch–cell membership of a projected volumetric energy (:mod:`.volumetric`): the pattern
+        then also holds every node pair in the support of one patch (its rank-one term,
+        :meth:`fill_patches`).
 
     Attributes
     ----------
@@ -112,7 +170,7 @@ class Assembler:
     """
 
     def __init__(self, support: sp.csr_matrix, ijk: np.ndarray | None = None, reach: int | None = None,
-                 wide: np.ndarray | None = None):
+                 wide: np.ndarray | None = None, patches: sp.csr_matrix | None = None):
         S = sp.csr_matrix(support)
         S.sort_indices()
         self.n_cells, self.n_nodes = S.shape
@@ -121,6 +179,18 @@ class Assembler:
         self.nodes = S.indices.astype(it)
         Sb = sp.csr_matrix((np.ones(S.nnz, np.float32), S.indices, S.indptr), shape=S.shape)
         P = (Sb.T.tocsr() @ Sb).tocsr()
+        self.pptr = self.pnodes = None
+        if patches is not None:
+            M = sp.csr_matrix(patches, dtype=np.float32, copy=True)
+            M.data[:] = 1.0
+            Sp = (M @ Sb).tocsr()
+            Sp.data[:] = 1.0
+            Sp.sort_indices()
+            P = (P + Sp.T.tocsr() @ Sp).tocsr()
+            itp = _int_dtype(max(Sp.nnz, self.n_nodes))
+            self.pptr = Sp.indptr.astype(itp)
+            self.pnodes = Sp.indices.astype(itp)
+            del Sp, M
         del Sb
         P.sort_indices()
         self.reach = -1 if reach is None else int(reach)
@@ -203,6 +273,37 @@ class Assembler:
         _fill(self.ptr, self.nodes, np.ascontiguousarray(g, dtype=np.float64), np.ascontiguousarray(A, dtype=np.float64),
               np.ascontiguousarray(w, dtype=np.float64), self.indptr, self.indices, out, self.ijk, self.reach,
               self.wide)
+        return out
+
+    def patch_vectors(self, g: np.ndarray, a: np.ndarray, wv: np.ndarray, patch_of: np.ndarray) -> np.ndarray:
+        """Vectors g_p = Σ_{L∈p} wv_L B̃_Lᵀ a_L of the patches on the patch-support layout.
+
+        Parameters
+        ----------
+        g : (nnz(S), 3) float
+            Gradient vectors on the support layout (:meth:`on_support`), cm⁻¹.
+        a : (N_cells, 3, 3) float
+            a_L = J_L F_L⁻ᵀ.
+        wv : (N_cells,) float
+            Weights V_L / V_p.
+        patch_of : (N_cells,) int
+            Patch of every cell.
+
+        Returns
+        -------
+        (nnz(S_p), 3) float
+            ``[pos(p, I), i]`` = component i of g_p at node I, cm⁻¹.
+        """
+        out = np.zeros((self.pnodes.shape[0], 3))
+        _patch_vectors(self.ptr, self.nodes, np.ascontiguousarray(g, np.float64), np.ascontiguousarray(a, np.float64),
+                       np.ascontiguousarray(wv, np.float64), np.ascontiguousarray(patch_of, np.int64), self.pptr,
+                       self.pnodes, out)
+        return out
+
+    def fill_patches(self, v: np.ndarray, coef: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """Add Σ_p coef_p g_p g_pᵀ (patch vectors ``v`` from :meth:`patch_vectors`) to block data."""
+        _fill_rank1(self.pptr, self.pnodes, np.ascontiguousarray(v, np.float64), np.ascontiguousarray(coef, np.float64),
+                    self.indptr, self.indices, out, self.ijk, self.reach, self.wide)
         return out
 
     def block_positions(self, brow: np.ndarray, bcol: np.ndarray, missing: str = "raise") -> np.ndarray:

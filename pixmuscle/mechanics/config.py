@@ -141,6 +141,18 @@ class StabilizationConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class VolumetricConfig:
+    """Volumetric energy of the nearly incompressible tissues (:mod:`pixmuscle.mechanics.volumetric`)."""
+
+    method: Literal["projected", "nodal"] = field(default="projected", metadata={"doc": "projected: mean dilatation per patch of voxels (no volumetric locking); nodal: K/2 (J − 1)² at every node as in the paper"})
+    patch: tuple[int, ...] = field(default=(3, 3, 3), metadata={"doc": "patch size in voxels per axis (x, y, z) of the projected dilatation"})
+
+    def __post_init__(self):
+        if len(self.patch) != 3 or any(int(p) != p or p < 1 for p in self.patch):
+            raise ValueError(f"volumetric.patch: expected 3 whole numbers >= 1 (voxels per axis), got {list(self.patch)}")
+
+
+@dataclasses.dataclass(frozen=True)
 class PenaltyConfig:
     """Penalty number β of the essential boundary conditions (paper eq. 9).
 
@@ -210,6 +222,7 @@ class SolveConfig:
     materials: MaterialsConfig = field(default_factory=MaterialsConfig)
     support: SupportConfig = field(default_factory=SupportConfig)
     stabilization: StabilizationConfig = field(default_factory=StabilizationConfig)
+    volumetric: VolumetricConfig = field(default_factory=VolumetricConfig)
     penalty: PenaltyConfig = field(default_factory=PenaltyConfig)
     newton: NewtonConfig = field(default_factory=NewtonConfig)
     solver: LinearSolverConfig = field(default_factory=LinearSolverConfig)

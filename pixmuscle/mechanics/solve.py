@@ -39,6 +39,7 @@ from .results import Results, cauchy_voigt, max_principal
 from .scni import SCNI, build_scni, cell_faces, face_incidence, support_radius
 from .stabilization import stabilization_operators, stabilization_stiffness
 from .tangent import MatrixFreeTangent, ProductForm, spd_surrogate
+from .volumetric import PatchProjection, VolumetricState
 
 _LOG = logging.getLogger(__name__)
 
@@ -66,6 +67,7 @@ class State:
     A: np.ndarray | None
     r: np.ndarray
     force_scale: float
+    vol: VolumetricState | None = None
 
 
 class MechanicalSystem:
@@ -87,10 +89,13 @@ class MechanicalSystem:
         Reference tangent A(F = I) per node, N/cm² (moduli of the stabilisation).
     stabilization : StabilizationConfig or None
         NSNI settings (``None``: no stabilisation).
+    patch : (3,) int or None
+        Patch size (voxels) of the projected volumetric energy (:mod:`.volumetric`); ``None``:
+        the nodal volumetric energy of the paper.
     """
 
     def __init__(self, model: Model, scni: SCNI, materials: dict, constraints: Constraints, A0: np.ndarray,
-                 stabilization=None):
+                 stabilization=None, patch=None):
         self.model = model
         self.scni = scni
         self.n_nodes = model.n_nodes
@@ -105,6 +110,12 @@ class MechanicalSystem:
             if idx.size:
                 self.groups.append((code, materials[code], idx))
         self.penalty = constraints.stiffness(self.n_nodes)
+        self.volumetric = None
+        if patch is not None:
+            bulk = np.empty(self.n_nodes)
+            for _, mat, idx in self.groups:
+                bulk[idx] = mat.bulk_modulus
+            self.volumetric = PatchProjection(model.ijk, scni.volume, bulk, patch)
         self.stab = None
         if stabilization is not None:
             H, C = stabilization_operators(scni, A0, coefficient=stabilization.coefficient,
@@ -134,7 +145,8 @@ class MechanicalSystem:
             sup = np.atleast_2d(self.scni.support)
             if reach is not None and sup.shape[0] == self.n_nodes:  # enlarged supports couple further than `reach`
                 wide = np.any(sup > sup.min(axis=0) * (1 + 1e-9), axis=1)
-            asm = Assembler(self._support, ijk=self.model.ijk, reach=reach, wide=wide)
+            patches = None if self.volumetric is None else self.volumetric.structure()
+            asm = Assembler(self._support, ijk=self.model.ijk, reach=reach, wide=wide, patches=patches)
             if self._g is None:
                 self._g = asm.on_support(self.scni.G)
             base = asm.zeros()
@@ -172,6 +184,11 @@ class MechanicalSystem:
         t0 = time.perf_counter()
         F = self.scni.deformation_gradient(d)
         P, A = self.material_response(F, alpha, tangent=True)
+        vs = None
+        if self.volumetric is not None:
+            vs = self.volumetric.state(F)
+            A = self.volumetric.tangent(A, F, vs)
+            P = self.volumetric.stress(P, vs)
         fi = self.scni.internal_force(P)
         fs = self.stabilization_force(d)
         if fs is not None:
@@ -181,7 +198,16 @@ class MechanicalSystem:
         scale = max(float(np.linalg.norm(fi)), float(np.linalg.norm(fp)))
         self.timings["material_s"] += time.perf_counter() - t0
         self.timings["n_evaluate"] += 1
-        return State(d=d, t=t, alpha=alpha, F=F, P=P, A=A, r=r, force_scale=scale)
+        return State(d=d, t=t, alpha=alpha, F=F, P=P, A=A, r=r, force_scale=scale, vol=vs)
+
+    def _add_patches(self, asm: Assembler, state: State, out: np.ndarray) -> None:
+        """Rank-one patch terms Σ_p V_p K̄_p g_p g_pᵀ of the projected volumetric energy."""
+        vol = self.volumetric
+        if vol is None:
+            return
+        wv = vol.volume / vol.vp[vol.patch_of]
+        v = asm.patch_vectors(self._g, state.vol.a, wv, vol.patch_of)
+        asm.fill_patches(v, vol.vp * vol.kbar, out)
 
     def stiffness(self, state: State) -> sp.bsr_matrix:
         """Consistent tangent K = Σ_L V_L B̃ᵀ A_L B̃ + K_stab + K_pen (BSR, 3N × 3N), N/cm."""
@@ -189,6 +215,7 @@ class MechanicalSystem:
         t0 = time.perf_counter()
         data = base.copy()
         asm.fill(self._g, state.A, self.scni.volume, out=data)
+        self._add_patches(asm, state, data)
         K = asm.matrix(data)
         self.timings["assembly_s"] += time.perf_counter() - t0
         self.timings["n_assembly"] += 1
@@ -199,7 +226,8 @@ class MechanicalSystem:
         if self._main is None:
             self._main = ProductForm([self.scni.G])
         C = (self.scni.volume[:, None, None] * state.A.reshape(-1, 9, 9))
-        return MatrixFreeTangent(self._main, C, stab=self.stab, penalty=self.penalty)
+        vol = None if self.volumetric is None else (self.volumetric, state.vol)
+        return MatrixFreeTangent(self._main, C, stab=self.stab, penalty=self.penalty, volumetric=vol)
 
     def preconditioner_matrix(self, state: State, reach: int = 2) -> sp.bsr_matrix:
         """Filtered positive stand-in of the tangent for preconditioning (BSR, 3N × 3N), N/cm.
@@ -212,6 +240,7 @@ class MechanicalSystem:
         t0 = time.perf_counter()
         data = base.copy()
         asm.fill(self._g, spd_surrogate(state.A), self.scni.volume, out=data)
+        self._add_patches(asm, state, data)
         self.timings["assembly_s"] += time.perf_counter() - t0
         self.timings["n_assembly"] += 1
         return asm.matrix(data)
@@ -224,8 +253,10 @@ class MechanicalSystem:
         return float(np.dot(self.scni.volume, W))
 
     def energy(self, state: State) -> float:
-        """Total potential Π = Σ V W + ½ dᵀ K_stab d + Π_pen, N·cm."""
+        """Total potential Π = Σ V W + ½ dᵀ K_stab d + Π_pen, N·cm (volumetric part per patch if projected)."""
         e = self.strain_energy(state.F, state.alpha) + self.constraints.energy(state.d, state.t)
+        if state.vol is not None:
+            e += self.volumetric.energy_correction(np.linalg.det(state.F), state.vol.dtheta)
         fs = self.stabilization_force(state.d)
         if fs is not None:
             e += 0.5 * float(np.vdot(state.d, fs))
@@ -236,6 +267,8 @@ class MechanicalSystem:
         s = np.empty((self.n_nodes, 3, 3))
         for code, mat, idx in self.groups:
             s[idx] = mat.cauchy(state.F[idx], **self._material_kw(code, idx, state.alpha))
+        if state.vol is not None:  # σ̃ = σ + shift I (a_L Fᵀ / J = I)
+            s += state.vol.shift[:, None, None] * np.eye(3)
         return s
 
 
@@ -299,7 +332,8 @@ def build_system(model: Model, cfg: SolveConfig) -> tuple[MechanicalSystem, dict
     constraints = build_constraints(model, list(cfg.boundary_conditions), scni.faces, sup, beta, at=cfg.penalty.at, **rk_kw)
     info["penalty_s"] = time.perf_counter() - t3
     t2 = time.perf_counter()
-    system = MechanicalSystem(model, scni, materials, constraints, A0, cfg.stabilization if stab else None)
+    patch = cfg.volumetric.patch if cfg.volumetric.method == "projected" else None
+    system = MechanicalSystem(model, scni, materials, constraints, A0, cfg.stabilization if stab else None, patch=patch)
     info["stabilization_s"] = time.perf_counter() - t2
     # absolute residual floor (N): round-off level of the penalty forces β w (u − g)
     system.atol = 1e-15 * beta * float(np.prod(model.spacing)) * max(1, model.n_nodes) ** 0.5

@@ -74,14 +74,17 @@ class ProductForm:
         g = (self.B @ V).reshape(self.n_groups, 3, self.n, 3)
         return g.transpose(0, 2, 3, 1)
 
-    def apply(self, C: np.ndarray, V: np.ndarray) -> np.ndarray:
-        """Σ_q B_qᵀ (C_q : (B_q V)).
+    def apply(self, C: np.ndarray, V: np.ndarray, extra=None) -> np.ndarray:
+        """Σ_q B_qᵀ (C_q : (B_q V) + extra(∇V)).
 
         Parameters
         ----------
         C : (Q·N, 9, 9) float
             Per-node moduli of every group, group-major, index 3i + J.
         V : (N, 3) float
+        extra : callable, optional
+            ``extra(grad) -> (N, 3, 3)``: a further stress-like term of the first group's
+            gradients ``grad[L, i, J] = ∂V_i/∂X_J`` (already multiplied by the cell volumes).
 
         Returns
         -------
@@ -90,6 +93,8 @@ class ProductForm:
         g = np.ascontiguousarray((self.B @ V).reshape(self.n_groups, 3, self.n, 3))
         t = np.empty_like(g)
         _contract(C, g, self.n, t)
+        if extra is not None:
+            t[0] += extra(g[0].transpose(1, 2, 0)).transpose(2, 0, 1)
         return self.BT @ t.reshape(-1, 3)
 
 
@@ -106,25 +111,32 @@ class MatrixFreeTangent(spla.LinearOperator):
         NSNI operators and their constant moduli.
     penalty : list of 3 sparse (N × N) or None
         Penalty stiffness per displacement component.
+    volumetric : tuple (PatchProjection, VolumetricState) or None
+        Rank-one patch terms of a projected volumetric energy (:mod:`.volumetric`).
     """
 
-    def __init__(self, main: ProductForm, C: np.ndarray, stab=None, penalty=None):
+    def __init__(self, main: ProductForm, C: np.ndarray, stab=None, penalty=None, volumetric=None):
         n = main.n
         super().__init__(np.float64, (3 * n, 3 * n))
         self.main = main
         self.C = np.ascontiguousarray(C, dtype=np.float64)
         self.stab = stab
         self.penalty = penalty
+        self.volumetric = volumetric
 
     def _matvec(self, v):
         V = np.asarray(v, dtype=np.float64).reshape(-1, 3)
-        y = self.main.apply(self.C, V)
+        y = self.main.apply(self.C, V, extra=None if self.volumetric is None else self._patch_term)
         if self.stab is not None:
             y += self.stab[0].apply(self.stab[1], V)
         if self.penalty is not None:
             for j in range(3):
                 y[:, j] += self.penalty[j] @ V[:, j]
         return y.reshape(-1)
+
+    def _patch_term(self, grad):
+        proj, vs = self.volumetric
+        return proj.apply(grad, vs)
 
     def _matmat(self, X):
         return np.column_stack([self._matvec(x) for x in np.asarray(X).T])
