@@ -135,6 +135,32 @@ class Constraints:
                 out[name] = np.where(self.mask[sel][0], t * self.target[sel][0], out[name])
         return out
 
+    def gaps(self, d: np.ndarray, t: float, u_nodes: np.ndarray) -> dict[str, dict[str, float]]:
+        """How far each boundary condition is from holding exactly, per reaction name (cm).
+
+        ``point_cm``: largest |u^h(x_c) − t g_c| over the constrained components at the
+        constraint points (where the penalty acts: end faces or nodes); ``node_cm``: the same at
+        the constrained nodes themselves, |u(X_I) − t g| (what a viewer of nodal fields sees).
+
+        Parameters
+        ----------
+        d : (N, 3) float
+            RK coefficients, cm.
+        t : float
+            Load factor.
+        u_nodes : (N, 3) float
+            Nodal displacements u(X_I), cm.
+        """
+        at_points = np.abs(self.gap(d, t))
+        at_nodes = np.where(self.mask, np.abs(u_nodes[self.node] - t * self.target), 0.0)
+        out = {name: {"point_cm": 0.0, "node_cm": 0.0} for name in self.reaction_names}
+        for b, name in enumerate(self.names):
+            sel = self.group == b
+            if np.any(sel):
+                out[name]["point_cm"] = max(out[name]["point_cm"], float(at_points[sel].max()))
+                out[name]["node_cm"] = max(out[name]["node_cm"], float(at_nodes[sel].max()))
+        return out
+
     def constrained_components(self) -> dict[str, np.ndarray]:
         """Constrained components per name, (3,) bool."""
         out = {name: np.zeros(3, bool) for name in self.reaction_names}

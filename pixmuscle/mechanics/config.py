@@ -190,12 +190,18 @@ class NewtonConfig:
 class LinearSolverConfig:
     """Linear solver backend (:mod:`pixmuscle.mechanics.linsolve`)."""
 
-    backend: Literal["auto", "direct", "cg_amg"] = "auto"
+    backend: str = field(default="auto", metadata={"doc": "auto, or a registered backend: direct, cg_amg (pixmuscle.mechanics.linsolve.BACKENDS)"})
     auto_direct_max_dofs: int | None = field(default=None, metadata={"range": (0, None), "doc": "auto: direct solver up to this many unknowns (3 per node), cg_amg above; default 45,000 (15k nodes: the measured cross-over with cg_amg, ~2.5 GB of factors) with PARDISO, 12,000 with SuperLU"})
     rtol: float = field(default=1.0e-10, metadata={"gt": 0, "doc": "relative residual of the Krylov iterations when Newton gives none; also the floor of Newton's adaptive tolerance"})
     direct_engine: Literal["auto", "pardiso", "superlu"] = field(default="auto", metadata={"doc": "direct: MKL PARDISO (optional package mkl, pip install 'pixmuscle[fast]') or SciPy's SuperLU; auto takes PARDISO when installed"})
     reuse_factorization: bool = field(default=True, metadata={"doc": "direct: keep the factors of an earlier tangent and use them to precondition CG on the exact (matrix-free) tangent; refactorise when that gets slow (> 20 CG iterations, or more than a quarter of the time of assembly + factorisation)"})
     maxiter: int = field(default=2000, metadata={"range": (1, None)})
+
+    def __post_init__(self):
+        from .linsolve import BACKENDS
+
+        if self.backend != "auto" and self.backend not in BACKENDS:
+            raise ValueError(f"backend: expected auto or one of {', '.join(sorted(BACKENDS))}, got {self.backend!r}")
 
 
 def _default_bcs() -> list:

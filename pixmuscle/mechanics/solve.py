@@ -373,6 +373,25 @@ def _psi_nodes(model: Model, cfg: SolveConfig, support) -> sp.csr_matrix:
                                          order=cfg.support.order, support_shape=cfg.support.shape))
 
 
+def constraint_gap(steps: list[dict]) -> dict[str, dict[str, float]]:
+    """Largest constraint gap of every boundary condition over the converged steps.
+
+    Per reaction name: ``point_cm`` and ``node_cm`` (cm, :meth:`.boundary.Constraints.gaps`) and
+    the same relative to the largest nodal displacement of the solve (``relative_point``,
+    ``relative_node``; 0 when nothing moves).
+    """
+    if not steps:
+        return {}
+    umax = max(float(np.linalg.norm(s["u"], axis=1).max()) for s in steps)
+    out = {}
+    for name in steps[0]["gaps"]:
+        pt = max(s["gaps"][name]["point_cm"] for s in steps)
+        nd = max(s["gaps"][name]["node_cm"] for s in steps)
+        out[name] = {"point_cm": pt, "node_cm": nd, "relative_point": pt / umax if umax > 0 else 0.0,
+                     "relative_node": nd / umax if umax > 0 else 0.0, "max_displacement_cm": umax}
+    return out
+
+
 def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activation=None) -> Results:
     """Solve the finite-strain equilibrium of a pixel-point model over the load steps.
 
@@ -443,6 +462,7 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
             prescribed=system.constraints.prescribed(rec.t), cauchy=cauchy_voigt(system.cauchy(st)), rows=rec.rows,
         ))
         steps[-1]["max_principal"] = max_principal(steps[-1]["cauchy"])
+        steps[-1]["gaps"] = system.constraints.gaps(st.d, rec.t, steps[-1]["u"])
         last_rel = rec.rows[-1].relative_residual if rec.rows else 0.0
         _LOG.info("load step %d of %d: α = %.4g, load factor %.4g, %d Newton iterations, %d cutbacks, relative residual %.2e",
                   rec.step, cfg.steps, steps[-1]["alpha"], rec.t, rec.iterations, rec.cutbacks, last_rel)
@@ -470,6 +490,11 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
                 pattern_s=system.timings.get("pattern_s", 0.0),
                 assembly_s=system.timings["assembly_s"], n_assembly=system.timings["n_assembly"],
                 material_s=system.timings["material_s"], n_evaluate=system.timings["n_evaluate"])
+    info["constraint_gap"] = constraint_gap(steps)
+    for name, g in info["constraint_gap"].items():
+        _LOG.log(logging.WARNING if g["relative_node"] > 0.01 else logging.INFO,
+                 "boundary condition %s: constrained components move up to %.3g cm at the nodes (%.2g %% of the largest "
+                 "displacement), %.3g cm at the constraint points", name, g["node_cm"], 100 * g["relative_node"], g["point_cm"])
     for reach, (asm, _) in system._assemblers.items():
         key = "nnz_per_row" if reach is None else "preconditioner_nnz_per_row"
         info[key] = round(asm.nnz / (3 * model.n_nodes), 1)

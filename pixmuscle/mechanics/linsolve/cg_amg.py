@@ -1,0 +1,153 @@
+"""Iterative backend ``cg_amg``: CG on the matrix-free tangent with a smoothed-aggregation AMG preconditioner."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import scipy.sparse as sp
+
+from ...errors import SolverError
+from .base import LinearSolver, pcg, register, rigid_body_modes
+
+_LOG = logging.getLogger(__name__)
+
+
+def voxel_aggregates(ijk: np.ndarray, block=(3, 3, 1)) -> sp.csr_matrix:
+    """Geometric aggregation of grid nodes into boxes of ``block`` voxels (N × N_agg, 0/1 CSR).
+
+    Used as pyamg's first-level aggregation: on the wide SCNI stiffness (~300 block neighbours
+    per node) pyamg's standard aggregation makes very few, very large aggregates and a weak
+    two-level method; voxel boxes give a proper hierarchy and halve the iteration count
+    (docs/linsolve-research.md §2(b)).
+    """
+    key = np.asarray(ijk, np.int64) // np.asarray(block, np.int64)
+    _, agg = np.unique(key, axis=0, return_inverse=True)
+    agg = agg.ravel()
+    n = agg.shape[0]
+    return sp.csr_matrix((np.ones(n), (np.arange(n), agg)), shape=(n, int(agg.max()) + 1))
+
+
+class KrylovAMGSolver(LinearSolver):
+    """CG on the matrix-free tangent, preconditioned by smoothed-aggregation AMG (pyamg).
+
+    Parameters
+    ----------
+    X : (N, 3) float
+        Node coordinates, cm (rigid-body modes).
+    ijk : (N, 3) int
+        Voxel indices (geometric aggregates and the filtered preconditioner matrix).
+    rtol : float
+        Relative residual when the caller gives none.
+    maxiter : int
+        CG iterations per solve.
+    reach : int
+        Blocks of node pairs at most this many voxels apart enter the preconditioner matrix.
+    aggregate : (3,) int
+        First-level aggregates, voxels per axis.
+    theta : float
+        Strength-of-connection threshold.
+
+    Notes
+    -----
+    Rebuild policy (the "ski-rental" rule): the first solve after a build sets the reference rate,
+    CG iterations per decade of residual reduction. Every later solve that needs more iterations
+    than that rate predicts adds its extra iterations, times the measured seconds per
+    iteration, to an account; when the account exceeds the time of the last build (filtered
+    matrix + AMG set-up), the hierarchy is rebuilt from the next Newton iteration's tangent. So
+    the time lost to a stale preconditioner never exceeds the time a rebuild costs, whatever
+    the model size; on small models (cheap builds) it rebuilds often, on large ones (a build
+    costs 45–60 s at 74k nodes) it keeps the hierarchy as long as it pays. The matrix-free
+    operator is always the exact tangent, so a stale preconditioner costs iterations, never
+    accuracy.
+    """
+
+    name = "cg_amg"
+
+    def __init__(self, X, ijk, rtol: float = 1e-8, maxiter: int = 2000, reach: int = 2, aggregate=(3, 3, 1),
+                 theta: float = 0.1):
+        super().__init__()
+        self.B = rigid_body_modes(X)
+        self.ijk = np.asarray(ijk)
+        self.rtol = rtol
+        self.maxiter = maxiter
+        self.reach = reach
+        self.aggregate = aggregate
+        self.theta = theta
+        self._M = None
+        self._rate0 = None
+        self._build_s = 0.0  # seconds of the last build
+        self._excess_s = 0.0  # seconds of CG iterations beyond the reference rate since that build
+        self._stale = True
+        self._system = None
+        self._state = None
+        self.info.update(preconditioner_builds=0, krylov_iterations=0, levels=0, operator_complexity=0.0)
+
+    def _build(self):
+        import pyamg
+
+        t0 = time.perf_counter()
+        self._M = None  # release the old hierarchy before the new one is built (peak memory)
+        Kp = self._system.preconditioner_matrix(self._state, self.reach)
+        self.info["preconditioner_nnz_per_row"] = Kp.nnz / Kp.shape[0]
+        ml = pyamg.smoothed_aggregation_solver(
+            Kp, B=self.B, symmetry="symmetric", strength=("symmetric", {"theta": self.theta}),
+            aggregate=[("predefined", {"AggOp": voxel_aggregates(self.ijk, self.aggregate)})] + ["standard"] * 10,
+            smooth=("jacobi", {"omega": 4.0 / 3.0, "degree": 1}), max_coarse=300, keep=False,
+        )
+        del Kp
+        self._M = ml.aspreconditioner(cycle="V")
+        self.info["levels"] = len(ml.levels)
+        self.info["operator_complexity"] = float(ml.operator_complexity())
+        self.info["preconditioner_builds"] += 1
+        self._build_s = time.perf_counter() - t0
+        self.info["setup_s"] += self._build_s
+        self._rate0 = None
+        self._excess_s = 0.0
+        self._stale = False
+        self._fresh = True
+
+    def prepare(self, system, state):
+        self.info["setup_s"] = 0.0
+        self._system, self._state = system, state
+        self._A = system.tangent_operator(state)
+        self._fresh = False
+        if self._M is None or self._stale:
+            self._build()
+
+    def solve(self, r, rtol=None):
+        t0 = time.perf_counter()
+        setup0 = self.info["setup_s"]
+        rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
+        b = np.asarray(r, float)
+        x, its, status = pcg(self._A, b, self._M, rtol, self.maxiter)
+        total = its
+        if status != "converged" and not self._fresh:
+            _LOG.debug("CG %s after %d iterations with a stale preconditioner; rebuilding it", status, its)
+            self._build()
+            x, its, status = pcg(self._A, b, self._M, rtol, self.maxiter)
+            total += its
+        self.info["iterations"] = total
+        self.info["krylov_iterations"] += total
+        self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
+        if status != "converged":
+            raise SolverError(f"cg_amg: CG {status} after {its} iterations (relative residual target {rtol:.1e}); "
+                              "check the boundary conditions (a free rigid-body motion makes K singular), or use "
+                              "solver.backend: direct on small models")
+        decades = max(np.log10(1.0 / rtol), 1.0)
+        if self._rate0 is None:
+            self._rate0 = max(its / decades, 1.0)
+        elif its > 0:
+            extra = its - self._rate0 * decades
+            self._excess_s += max(extra, 0.0) * self.info["solve_s"] / its
+            if self._excess_s > self._build_s:
+                self._stale = True  # rebuilt at the next prepare(), from that state's tangent
+        return x
+
+
+@register("cg_amg")
+def _make_cg_amg(X, *, ijk=None, rtol: float = 1e-10, maxiter: int = 2000, **_) -> KrylovAMGSolver:
+    if ijk is None:
+        raise ValueError("cg_amg needs the voxel indices ijk of the nodes")
+    return KrylovAMGSolver(X, ijk, rtol=rtol, maxiter=maxiter)
