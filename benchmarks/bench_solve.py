@@ -224,6 +224,42 @@ def probe(size: str, penalty: float | None) -> dict:
     return out
 
 
+#: the tissues' bulk moduli of Tables 1–2 (N/cm²), scaled by --conditioning
+BULK = {"muscle": 5000.0, "connective_tissue": 50000.0, "fat": 5000.0}
+
+
+def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol: float = 1e-6) -> dict:
+    """CG iterations of one Newton system (first load step, α = 0.095) against near-incompressibility.
+
+    Every tissue's bulk modulus K is multiplied by each of ``scales`` (K/μ ≈ 90, 900, 9,000 for the
+    paper's constants), for the nodal and the projected volumetric energy; ``cg_amg`` solves the
+    system to ``rtol``. A formulation whose iterations stay flat as K/μ grows is robust where
+    the cost of the nearly incompressible tissues comes from.
+    """
+    from pixmuscle.mechanics.linsolve import make_solver, pcg
+    from pixmuscle.mechanics.solve import build_system
+
+    rows = []
+    for method in ("nodal", "projected"):
+        for scale in scales:
+            mats = {k: {"K": v * scale} for k, v in BULK.items()}
+            model, cfg = leg_case(size, penalty, materials=mats, volumetric={"method": method})
+            system, _ = build_system(model, cfg)
+            state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.095)
+            solver = make_solver("cg_amg", model.X, ijk=model.ijk)
+            t = time.perf_counter()
+            solver.prepare(system, state)
+            setup = time.perf_counter() - t
+            t = time.perf_counter()
+            _, its, status = pcg(solver._A, state.r.ravel(), solver._M, rtol, 5000)
+            rows.append({"volumetric": method, "bulk_scale": scale, "K_over_mu_muscle": round(BULK["muscle"] * scale / 5.26),
+                         "cg_iterations": its, "status": status, "cg_s": round(time.perf_counter() - t, 1),
+                         "setup_s": round(setup, 1)})
+            print(json.dumps(rows[-1]), flush=True)
+    return {"size": size, "nodes": model.n_nodes, "rtol": rtol, "rows": rows,
+            "peak_rss_GB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2)}
+
+
 def probe_direct(size: str, penalty: float | None) -> dict:
     """PARDISO's symbolic analysis of the full tangent at ``size``: predicted factor size and
     flops of one factorisation, without factorising (for sizes where that would not fit)."""
@@ -345,8 +381,12 @@ def main(argv=None):
     p.add_argument("--probe-direct", default=None, metavar="SIZE",
                    help="PARDISO's symbolic analysis of the full tangent at SIZE (predicted factor size and "
                         "flops); writes results/bench_solve_probe_direct_SIZE.json")
+    p.add_argument("--conditioning", default=None, metavar="SIZE",
+                   help="CG iterations of one Newton system at SIZE with the bulk moduli x0.1, x1, x10, nodal and "
+                        "projected volumetric energy; writes results/bench_solve_conditioning_SIZE.json")
     args = p.parse_args(argv)
-    for size, fn, stem in ((args.probe_direct, probe_direct, "bench_solve_probe_direct"), (args.probe, probe, "bench_solve_probe")):
+    for size, fn, stem in ((args.probe_direct, probe_direct, "bench_solve_probe_direct"), (args.probe, probe, "bench_solve_probe"),
+                           (args.conditioning, conditioning, "bench_solve_conditioning")):
         if size:
             res = fn(size, args.penalty)
             res["command"] = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)

@@ -115,7 +115,10 @@ class MechanicalSystem:
             bulk = np.empty(self.n_nodes)
             for _, mat, idx in self.groups:
                 bulk[idx] = mat.bulk_modulus
-            self.volumetric = PatchProjection(model.ijk, scni.volume, bulk, patch)
+            held = np.zeros(self.n_nodes, bool)
+            at_node = np.all(np.isclose(constraints.points, np.asarray(model.X, float)[constraints.node]), axis=1)
+            held[constraints.node[at_node & constraints.mask.any(axis=1)]] = True
+            self.volumetric = PatchProjection(model.ijk, scni.volume, bulk, patch, single=held)
         self.stab = None
         if stabilization is not None:
             H, C = stabilization_operators(scni, A0, coefficient=stabilization.coefficient,

@@ -80,6 +80,11 @@ class PatchProjection:
         Bulk modulus K_L of each node's material, N/cm².
     patch : (3,) int
         Patch size in voxels per axis; patches are the boxes ⌊ijk / patch⌋ of the grid.
+    single : (N,) bool, optional
+        Nodes that keep a patch of their own (their nodal volumetric energy): the nodes held by a
+        boundary condition at the node itself. A patch that mixed a held node with free ones
+        would let the free half of the held node's cell trade volume with its neighbours at no
+        volumetric cost, a mechanism that an active muscle pulling on its clamp exploits.
 
     Attributes
     ----------
@@ -93,7 +98,7 @@ class PatchProjection:
         Patch volumes V_p, cm³.
     """
 
-    def __init__(self, ijk: np.ndarray, volume: np.ndarray, bulk: np.ndarray, patch=(3, 3, 3)):
+    def __init__(self, ijk: np.ndarray, volume: np.ndarray, bulk: np.ndarray, patch=(3, 3, 3), single=None):
         ijk = np.asarray(ijk, np.int64)
         patch = np.broadcast_to(np.asarray(patch, np.int64), (3,))
         if np.any(patch < 1):
@@ -101,6 +106,9 @@ class PatchProjection:
         key = ijk // patch
         key = key - key.min(axis=0)
         flat = np.ravel_multi_index(key.T, key.max(axis=0) + 1)
+        if single is not None and np.any(single):
+            single = np.asarray(single, bool)
+            flat[single] = flat.max() + 1 + np.arange(int(single.sum()))
         _, self.patch_of = np.unique(flat, return_inverse=True)
         self.patch_of = self.patch_of.astype(np.int64).reshape(-1)
         n = ijk.shape[0]
