@@ -379,9 +379,12 @@ def _psi_nodes(model: Model, cfg: SolveConfig, support) -> sp.csr_matrix:
 def constraint_gap(steps: list[dict]) -> dict[str, dict[str, float]]:
     """Largest constraint gap of every boundary condition over the converged steps.
 
-    Per reaction name: ``point_cm`` and ``node_cm`` (cm, :meth:`.boundary.Constraints.gaps`) and
-    the same relative to the largest nodal displacement of the solve (``relative_point``,
-    ``relative_node``; 0 when nothing moves).
+    Per reaction name: ``max_cm`` — the largest error of the constrained components where the
+    condition is imposed (the constraint points: end faces or nodes, :meth:`.boundary.Constraints.gaps`),
+    cm — and ``relative``, the same divided by the largest nodal displacement of the solve (0 when
+    nothing moves); ``node_cm`` and ``relative_node``: the same at the constrained nodes themselves
+    (for end sets constrained on their end faces, the node layer half a voxel inside the face moves
+    with the tissue between them); ``max_displacement_cm``.
     """
     if not steps:
         return {}
@@ -390,7 +393,7 @@ def constraint_gap(steps: list[dict]) -> dict[str, dict[str, float]]:
     for name in steps[0]["gaps"]:
         pt = max(s["gaps"][name]["point_cm"] for s in steps)
         nd = max(s["gaps"][name]["node_cm"] for s in steps)
-        out[name] = {"point_cm": pt, "node_cm": nd, "relative_point": pt / umax if umax > 0 else 0.0,
+        out[name] = {"max_cm": pt, "relative": pt / umax if umax > 0 else 0.0, "node_cm": nd,
                      "relative_node": nd / umax if umax > 0 else 0.0, "max_displacement_cm": umax}
     return out
 
@@ -493,17 +496,18 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
                 pattern_s=system.timings.get("pattern_s", 0.0),
                 assembly_s=system.timings["assembly_s"], n_assembly=system.timings["n_assembly"],
                 material_s=system.timings["material_s"], n_evaluate=system.timings["n_evaluate"])
-    info["constraint_gap"] = constraint_gap(steps)
-    for name, g in info["constraint_gap"].items():
-        _LOG.log(logging.WARNING if g["relative_node"] > 0.01 else logging.INFO,
-                 "boundary condition %s: constrained components move up to %.3g cm at the nodes (%.2g %% of the largest "
-                 "displacement), %.3g cm at the constraint points", name, g["node_cm"], 100 * g["relative_node"], g["point_cm"])
+    gaps = constraint_gap(steps)
+    for name, g in gaps.items():
+        _LOG.log(logging.WARNING if g["relative"] > 0.01 else logging.INFO,
+                 "boundary condition %s: constraint gap %.3g cm (%.2g %% of the largest displacement, %.3g cm); "
+                 "its nodes move %.3g cm in the constrained components", name, g["max_cm"], 100 * g["relative"],
+                 g["max_displacement_cm"], g["node_cm"])
     for reach, (asm, _) in system._assemblers.items():
         key = "nnz_per_row" if reach is None else "preconditioner_nnz_per_row"
         info[key] = round(asm.nnz / (3 * model.n_nodes), 1)
     results = Results.from_steps(model, steps, failed_rows=failed_rows, status=status, n_steps=cfg.steps,
                                  constrained=system.constraints.constrained_components(), info=info,
-                                 sign_convention=SIGN_CONVENTION)
+                                 sign_convention=SIGN_CONVENTION, constraint_gap=gaps)
     if error is not None:
         error.results = results
         raise error
