@@ -228,7 +228,8 @@ def probe(size: str, penalty: float | None) -> dict:
 BULK = {"muscle": 5000.0, "connective_tissue": 50000.0, "fat": 5000.0}
 
 
-def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol: float = 1e-6) -> dict:
+def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol: float = 1e-6,
+                 methods=("nodal", "projected")) -> dict:
     """CG iterations of one Newton system (first load step, α = 0.095) against near-incompressibility.
 
     Every tissue's bulk modulus K is multiplied by each of ``scales`` (K/μ ≈ 90, 900, 9,000 for the
@@ -240,7 +241,7 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
     from pixmuscle.mechanics.solve import build_system
 
     rows = []
-    for method in ("nodal", "projected"):
+    for method in methods:
         for scale in scales:
             mats = {k: {"K": v * scale} for k, v in BULK.items()}
             model, cfg = leg_case(size, penalty, materials=mats, volumetric={"method": method})

@@ -145,7 +145,7 @@ class VolumetricConfig:
     """Volumetric energy of the nearly incompressible tissues (:mod:`pixmuscle.mechanics.volumetric`)."""
 
     method: Literal["projected", "nodal"] = field(default="projected", metadata={"doc": "projected: mean dilatation per patch of voxels (no volumetric locking); nodal: K/2 (J − 1)² at every node as in the paper"})
-    patch: tuple[int, ...] = field(default=(3, 3, 3), metadata={"doc": "patch size in voxels per axis (x, y, z) of the projected dilatation"})
+    patch: tuple[int, ...] = field(default=(1, 1, 3), metadata={"doc": "patch size in voxels per axis (x, y, z) of the projected dilatation"})
 
     def __post_init__(self):
         if len(self.patch) != 3 or any(int(p) != p or p < 1 for p in self.patch):
