@@ -386,7 +386,11 @@ def _psi_nodes(model: Model, cfg: SolveConfig, support) -> sp.csr_matrix:
                                          order=cfg.support.order, support_shape=cfg.support.shape))
 
 
-def constraint_gap(steps: list[dict]) -> dict[str, dict[str, float]]:
+#: a constraint gap is worth a warning above this fraction of the largest displacement and of the voxel
+GAP_WARN = 0.01
+
+
+def constraint_gap(steps: list[dict], h_min: float) -> dict[str, dict]:
     """Largest constraint gap of every boundary condition over the converged steps.
 
     Per reaction name: ``max_cm`` — the largest error of the constrained components where the
@@ -394,7 +398,9 @@ def constraint_gap(steps: list[dict]) -> dict[str, dict[str, float]]:
     cm — and ``relative``, the same divided by the largest nodal displacement of the solve (0 when
     nothing moves); ``node_cm`` and ``relative_node``: the same at the constrained nodes themselves
     (for end sets constrained on their end faces, the node layer half a voxel inside the face moves
-    with the tissue between them); ``max_displacement_cm``.
+    with the tissue between them); ``max_displacement_cm``; ``significant``: the gap exceeds
+    :data:`GAP_WARN` of both the largest displacement and the smallest voxel edge ``h_min`` (cm) —
+    in a nearly isometric solve a gap of a few µm can be percents of the tiny largest displacement).
     """
     if not steps:
         return {}
@@ -403,8 +409,9 @@ def constraint_gap(steps: list[dict]) -> dict[str, dict[str, float]]:
     for name in steps[0]["gaps"]:
         pt = max(s["gaps"][name]["point_cm"] for s in steps)
         nd = max(s["gaps"][name]["node_cm"] for s in steps)
-        out[name] = {"max_cm": pt, "relative": pt / umax if umax > 0 else 0.0, "node_cm": nd,
-                     "relative_node": nd / umax if umax > 0 else 0.0, "max_displacement_cm": umax}
+        rel = pt / umax if umax > 0 else 0.0
+        out[name] = {"max_cm": pt, "relative": rel, "node_cm": nd, "relative_node": nd / umax if umax > 0 else 0.0,
+                     "max_displacement_cm": umax, "significant": bool(rel > GAP_WARN and pt > GAP_WARN * h_min)}
     return out
 
 
@@ -506,9 +513,9 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
                 pattern_s=system.timings.get("pattern_s", 0.0),
                 assembly_s=system.timings["assembly_s"], n_assembly=system.timings["n_assembly"],
                 material_s=system.timings["material_s"], n_evaluate=system.timings["n_evaluate"])
-    gaps = constraint_gap(steps)
+    gaps = constraint_gap(steps, float(np.min(model.spacing)))
     for name, g in gaps.items():
-        _LOG.log(logging.WARNING if g["relative"] > 0.01 else logging.INFO,
+        _LOG.log(logging.WARNING if g["significant"] else logging.INFO,
                  "boundary condition %s: constraint gap %.3g cm (%.2g %% of the largest displacement, %.3g cm); "
                  "its nodes move %.3g cm in the constrained components", name, g["max_cm"], 100 * g["relative"],
                  g["max_displacement_cm"], g["node_cm"])

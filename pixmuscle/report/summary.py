@@ -57,7 +57,7 @@ def stage_warnings(res: Results) -> list[str]:
         out.append(f"solve: RK supports enlarged at {n_enl} of {res.model.n_nodes} nodes to cover thin features")
     for name, gap in sorted((res.constraint_gap or {}).items()):
         rel = gap.get("relative") if isinstance(gap, dict) else None
-        if rel is not None and np.isfinite(rel) and rel > CONSTRAINT_GAP_WARN:
+        if rel is not None and np.isfinite(rel) and gap.get("significant", rel > CONSTRAINT_GAP_WARN):
             out.append(f"solve: constraint gap of node set '{name}' is {100 * rel:.2g} % of the largest displacement "
                        f"({gap.get('max_cm', float('nan')):.3g} cm): raise solve.penalty.factor")
     return out
