@@ -7,7 +7,7 @@ and still deform: the model *locks* (too stiff, more so the larger K/μ), and th
 constraints make the linear systems ill-conditioned.
 
 What. The volumetric energy is evaluated with the mean dilatation of a patch p of neighbouring
-cells (a box of ``patch`` voxels on the grid, e.g. 2 × 2 × 1):
+cells (a box of ``patch`` voxels on the grid; default 1 × 1 × 3, three slices):
 
     θ_p = (1/V_p) Σ_{L∈p} V_L J_L,    V_p = Σ_{L∈p} V_L,    K̄_p = (1/V_p) Σ_{L∈p} V_L K_L,
 
@@ -18,7 +18,10 @@ patch, condensed patch by patch — the nodal-integration analogue of the mean-d
 element (Nagtegaal, Parks & Rice 1974; Simo, Taylor & Pister 1985) and of the pressure
 projection of Chen, Yoon, Wang & Liu (2000, CMAME 181:117–145) for nearly incompressible RKPM.
 One volumetric constraint per patch instead of per node removes the locking; a patch of one cell
-gives back the nodal formulation exactly.
+gives back the nodal formulation exactly. Patches along the slice axis are the default: the
+locking of the voxel models comes from the coarse slice direction (the Example-1 tendon: +5.8 % →
++0.2 % against converged finite elements), and such patches do not straddle the in-plane
+interfaces of muscles and tissues, across which one shared pressure would be wrong.
 
 Equations. With a_L = ∂J/∂F = J F⁻ᵀ at node L and the patch pressure p_p = K̄_p (θ_p − 1):
 
@@ -98,7 +101,7 @@ class PatchProjection:
         Patch volumes V_p, cm³.
     """
 
-    def __init__(self, ijk: np.ndarray, volume: np.ndarray, bulk: np.ndarray, patch=(3, 3, 3), single=None):
+    def __init__(self, ijk: np.ndarray, volume: np.ndarray, bulk: np.ndarray, patch=(1, 1, 3), single=None):
         ijk = np.asarray(ijk, np.int64)
         patch = np.broadcast_to(np.asarray(patch, np.int64), (3,))
         if np.any(patch < 1):
