@@ -21,6 +21,18 @@ import numpy as np
 import scipy.sparse as sp
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _position(indices, lo, hi, key):  # pragma: no cover - compiled
+    """Position of ``key`` in the sorted ``indices[lo:hi + 1]`` (binary search; the key is present)."""
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if indices[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
 @numba.njit(cache=True, nogil=True)
 def _fill(ptr, nodes, g, A, w, indptr, indices, data, ijk, reach, wide):  # pragma: no cover - compiled
     nc = ptr.shape[0] - 1
@@ -54,14 +66,7 @@ def _fill(ptr, nodes, g, A, w, indptr, indices, data, ijk, reach, wide):  # prag
                         abs(ijk[na, 0] - ijk[nb, 0]) > reach or abs(ijk[na, 1] - ijk[nb, 1]) > reach
                         or abs(ijk[na, 2] - ijk[nb, 2]) > reach):
                     continue
-                lo = indptr[na]
-                hi = indptr[na + 1] - 1
-                while lo < hi:  # binary search for column nb in block row na
-                    mid = (lo + hi) >> 1
-                    if indices[mid] < nb:
-                        lo = mid + 1
-                    else:
-                        hi = mid
+                lo = _position(indices, indptr[na], indptr[na + 1] - 1, nb)
                 for i in range(3):
                     for k in range(3):
                         data[lo, i, k] += h0 * t[i, 0, k] + h1 * t[i, 1, k] + h2 * t[i, 2, k]
@@ -76,14 +81,7 @@ def _patch_vectors(ptr, nodes, g, a, wv, patch_of, pptr, pnodes, out):  # pragma
         w = wv[L]
         for bb in range(ptr[L], ptr[L + 1]):
             node = nodes[bb]
-            lo = pptr[p]
-            hi = pptr[p + 1] - 1
-            while lo < hi:
-                mid = (lo + hi) >> 1
-                if pnodes[mid] < node:
-                    lo = mid + 1
-                else:
-                    hi = mid
+            lo = _position(pnodes, pptr[p], pptr[p + 1] - 1, node)
             for i in range(3):
                 out[lo, i] += w * (a[L, i, 0] * g[bb, 0] + a[L, i, 1] * g[bb, 1] + a[L, i, 2] * g[bb, 2])
 
@@ -107,14 +105,7 @@ def _fill_rank1(pptr, pnodes, v, coef, indptr, indices, data, ijk, reach, wide):
                         abs(ijk[na, 0] - ijk[nb, 0]) > reach or abs(ijk[na, 1] - ijk[nb, 1]) > reach
                         or abs(ijk[na, 2] - ijk[nb, 2]) > reach):
                     continue
-                lo = indptr[na]
-                hi = indptr[na + 1] - 1
-                while lo < hi:
-                    mid = (lo + hi) >> 1
-                    if indices[mid] < nb:
-                        lo = mid + 1
-                    else:
-                        hi = mid
+                lo = _position(indices, indptr[na], indptr[na + 1] - 1, nb)
                 for i in range(3):
                     ci = c * v[aa, i]
                     for k in range(3):
