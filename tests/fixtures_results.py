@@ -191,3 +191,21 @@ def write_results_fixture(path, *, n_steps: int = 4, alpha_end: float = 0.95, fa
         n_subcutaneous=int(masks["fat_ring"].sum()),
         f_max=float(F[ok].max()), status=status, imat_nodes=masks["pocket1"] | masks["pocket2"],
     )
+
+
+def write_mg_phantom(out: Path) -> tuple[Path, list]:
+    """Write a tiny SYNTHETIC medial-gastrocnemius phantom (48 × 32 × 3 voxels, NIfTI) into ``out``.
+
+    Returns ``out`` and a user's seed click: the deepest point of the muscle in the middle slice
+    (world cm).
+    """
+    from scipy import ndimage as ndi
+
+    from pixmuscle.synth import make_mg_phantom, write_phantom
+
+    ph = make_mg_phantom("young", shape=(48, 32, 3), pixel_cm=0.156, seed=3)
+    write_phantom(ph, out, "mg")
+    k = ph.muscle_id.shape[2] // 2
+    dist = ndi.distance_transform_edt(ph.muscle_id[:, :, k] == 1)
+    i, j = np.unravel_index(np.argmax(dist), dist.shape)
+    return out, (ph.affine @ np.array([i, j, k, 1.0]))[:3].round(3).tolist()

@@ -21,13 +21,12 @@ import nibabel as nib
 import numpy as np
 import pytest
 import yaml
-from scipy import ndimage as ndi
+from fixtures_results import write_mg_phantom
 from typer.testing import CliRunner
 
 from pixmuscle.cli import app
 from pixmuscle.errors import InputError, SolverError
 from pixmuscle.pipeline import load_subjects, run_subject
-from pixmuscle.synth import make_mg_phantom, write_phantom
 
 runner = CliRunner()
 
@@ -36,14 +35,7 @@ runner = CliRunner()
 @pytest.fixture(scope="module")
 def phantom(tmp_path_factory):
     """A tiny SYNTHETIC medial-gastrocnemius phantom (48 × 32 × 3 voxels) and a seed inside the muscle."""
-    out = tmp_path_factory.mktemp("phantom")
-    ph = make_mg_phantom("young", shape=(48, 32, 3), pixel_cm=0.156, seed=3)
-    write_phantom(ph, out, "mg")
-    k = ph.muscle_id.shape[2] // 2
-    dist = ndi.distance_transform_edt(ph.muscle_id[:, :, k] == 1)
-    i, j = np.unravel_index(np.argmax(dist), dist.shape)
-    seed = (ph.affine @ np.array([i, j, k, 1.0]))[:3].round(3).tolist()
-    return out, seed
+    return write_mg_phantom(tmp_path_factory.mktemp("phantom"))
 
 
 def base_config(phantom, out_dir) -> dict:

@@ -11,24 +11,15 @@ import meshio
 import numpy as np
 import pytest
 import yaml
-from scipy import ndimage as ndi
+from fixtures_results import write_mg_phantom
 
 from pixmuscle.pipeline import load_subjects, run_pipeline, run_subject
-from pixmuscle.synth import make_mg_phantom, write_phantom
 
 
 @pytest.fixture(scope="module")
 def phantom_dir(tmp_path_factory):
     """A tiny SYNTHETIC medial-gastrocnemius phantom (48 × 32 × 3 voxels) written as NIfTI."""
-    out = tmp_path_factory.mktemp("phantom")
-    ph = make_mg_phantom("young", shape=(48, 32, 3), pixel_cm=0.156, seed=3)
-    write_phantom(ph, out, "mg")
-    # a user's seed click: the deepest point of the muscle in the middle slice (world cm)
-    k = ph.muscle_id.shape[2] // 2
-    dist = ndi.distance_transform_edt(ph.muscle_id[:, :, k] == 1)
-    i, j = np.unravel_index(np.argmax(dist), dist.shape)
-    seed = (ph.affine @ np.array([i, j, k, 1.0]))[:3].round(3).tolist()
-    return out, seed
+    return write_mg_phantom(tmp_path_factory.mktemp("phantom"))
 
 
 def _config(phantom_dir, out_dir, *, steps=2, subjects=None) -> dict:

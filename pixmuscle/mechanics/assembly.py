@@ -33,6 +33,15 @@ def _position(indices, lo, hi, key):  # pragma: no cover - compiled
     return lo
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _far(ijk, wide, na, nb, reach):  # pragma: no cover - compiled
+    """True when nodes na, nb are more than ``reach`` voxels apart along an axis and neither is ``wide``."""
+    if wide[na] or wide[nb]:
+        return False
+    return (abs(ijk[na, 0] - ijk[nb, 0]) > reach or abs(ijk[na, 1] - ijk[nb, 1]) > reach
+            or abs(ijk[na, 2] - ijk[nb, 2]) > reach)
+
+
 @numba.njit(cache=True, nogil=True)
 def _fill(ptr, nodes, g, A, w, indptr, indices, data, ijk, reach, wide):  # pragma: no cover - compiled
     nc = ptr.shape[0] - 1
@@ -62,9 +71,7 @@ def _fill(ptr, nodes, g, A, w, indptr, indices, data, ijk, reach, wide):  # prag
                 h2 = g[aa, 2]
                 if h0 == 0.0 and h1 == 0.0 and h2 == 0.0:
                     continue
-                if filtered and not (wide[na] or wide[nb]) and (
-                        abs(ijk[na, 0] - ijk[nb, 0]) > reach or abs(ijk[na, 1] - ijk[nb, 1]) > reach
-                        or abs(ijk[na, 2] - ijk[nb, 2]) > reach):
+                if filtered and _far(ijk, wide, na, nb, reach):
                     continue
                 lo = _position(indices, indptr[na], indptr[na + 1] - 1, nb)
                 for i in range(3):
@@ -101,9 +108,7 @@ def _fill_rank1(pptr, pnodes, v, coef, indptr, indices, data, ijk, reach, wide):
             na = pnodes[aa]
             for bb in range(s, e):
                 nb = pnodes[bb]
-                if filtered and not (wide[na] or wide[nb]) and (
-                        abs(ijk[na, 0] - ijk[nb, 0]) > reach or abs(ijk[na, 1] - ijk[nb, 1]) > reach
-                        or abs(ijk[na, 2] - ijk[nb, 2]) > reach):
+                if filtered and _far(ijk, wide, na, nb, reach):
                     continue
                 lo = _position(indices, indptr[na], indptr[na + 1] - 1, nb)
                 for i in range(3):

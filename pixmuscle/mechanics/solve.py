@@ -191,7 +191,7 @@ class MechanicalSystem:
         vs = None
         if self.volumetric is not None:
             vs = self.volumetric.state(F)
-            A = self.volumetric.tangent(A, F, vs)
+            A = self.volumetric.tangent(A, vs)
             P = self.volumetric.stress(P, vs)
         fi = self.scni.internal_force(P)
         fs = self.stabilization_force(d)
@@ -269,7 +269,7 @@ class MechanicalSystem:
         """Total potential Π = Σ V W + ½ dᵀ K_stab d + Π_pen, N·cm (volumetric part per patch if projected)."""
         e = self.strain_energy(state.F, state.alpha) + self.constraints.energy(state.d, state.t)
         if state.vol is not None:
-            e += self.volumetric.energy_correction(np.linalg.det(state.F), state.vol.dtheta)
+            e += self.volumetric.energy_correction(state.vol.J, state.vol.dtheta)
         fs = self.stabilization_force(state.d)
         if fs is not None:
             e += 0.5 * float(np.vdot(state.d, fs))

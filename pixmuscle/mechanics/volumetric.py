@@ -54,6 +54,8 @@ class VolumetricState:
 
     Attributes
     ----------
+    J : (N,) float
+        det F_L.
     a : (N, 3, 3) float
         a_L = J_L F_L⁻ᵀ (dimensionless).
     dtheta : (N_p,) float
@@ -64,6 +66,7 @@ class VolumetricState:
         p_p − K_L (J_L − 1) at each node: the change of the node's mean stress, N/cm².
     """
 
+    J: np.ndarray
     a: np.ndarray
     dtheta: np.ndarray
     pressure: np.ndarray
@@ -139,16 +142,15 @@ class PatchProjection:
         dtheta = self.Q @ (J - 1.0)
         pressure = self.kbar * dtheta
         shift = pressure[self.patch_of] - self.bulk * (J - 1.0)
-        return VolumetricState(a=a, dtheta=dtheta, pressure=pressure, shift=shift)
+        return VolumetricState(J=J, a=a, dtheta=dtheta, pressure=pressure, shift=shift)
 
     def stress(self, P: np.ndarray, vs: VolumetricState) -> np.ndarray:
         """P̃_L = P_L + (p_p − K_L (J_L − 1)) a_L, N/cm², shape (N, 3, 3)."""
         return P + vs.shift[:, None, None] * vs.a
 
-    def tangent(self, A: np.ndarray, F: np.ndarray, vs: VolumetricState) -> np.ndarray:
+    def tangent(self, A: np.ndarray, vs: VolumetricState) -> np.ndarray:
         """Per-node part Ã_L = A_L − K_L a⊗a + shift_L ∂a/∂F, N/cm², shape (N, 3, 3, 3, 3)."""
-        a = vs.a
-        J = np.linalg.det(F)
+        a, J = vs.a, vs.J
         H = a / J[:, None, None]
         out = A - self.bulk[:, None, None, None, None] * np.einsum("nij,nkl->nijkl", a, a)
         # shift · ∂a/∂F = shift · J (H⊗H − H⊙H)
