@@ -64,10 +64,13 @@ def figure(key: str, section: str, caption: str):
     return deco
 
 
-def make_figures(ctx: Context) -> dict[str, tuple[FigureSpec, Path]]:
-    """Make every registered figure; returns key → (spec, PNG path) of those made."""
+def make_figures(ctx: Context, sections=None) -> dict[str, tuple[FigureSpec, Path]]:
+    """Make every registered figure (only those of ``sections`` when given); returns key → (spec,
+    PNG path) of those made."""
     out = {}
     for spec in FIGURES:
+        if sections is not None and spec.section not in sections:
+            continue
         p = spec.make(ctx)
         if p is not None:
             out[spec.key] = (spec, Path(p))

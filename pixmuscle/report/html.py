@@ -140,6 +140,67 @@ def _provenance_rows(stages: Sequence[Mapping[str, Any]]) -> list[list]:
     return rows
 
 
+def models_section(summary: Mapping[str, Any], tissues: Mapping[str, Mapping[str, Any]],
+                   slice_figures: Mapping[str, Mapping[str, Any]]) -> str:
+    """HTML fragment of a case solved on several models (coarse and fine): one facts column per
+    model, the difference table against the finest (``summary["convergence"]``), each model's
+    tissue table and the other models' slice figures.
+
+    Parameters
+    ----------
+    summary : mapping
+        With ``models`` (label → entry) and ``convergence`` (:func:`~pixmuscle.report.convergence.convergence_table`).
+    tissues : mapping label → tissue table (:func:`~pixmuscle.report.tables.tissue_table`)
+    slice_figures : mapping label → figures made for that model (key → (FigureSpec, PNG path))
+    """
+    models, conv = summary["models"], summary["convergence"]
+    labels = conv["models"]
+    rows = [
+        ["nodes"] + [models[k]["n_nodes"] for k in labels],
+        ["in-plane spacing [cm]"] + [models[k]["spacing_cm"][0] for k in labels],
+        ["slice spacing [cm]"] + [models[k]["spacing_cm"][2] for k in labels],
+        ["status"] + [models[k]["status"] for k in labels],
+        ["F_max [N]"] + [models[k]["F_max_N"] for k in labels],
+        ["α at F_max"] + [models[k]["alpha_at_F_max"] for k in labels],
+        ["muscle volume [cm³]"] + [models[k]["volumes_cm3"]["muscle"] for k in labels],
+        ["total volume [cm³]"] + [models[k]["volumes_cm3"]["total"] for k in labels],
+        ["F_max / total volume [N/cm³]"] + [models[k]["force_per_volume_N_per_cm3"] for k in labels],
+        ["F_max / muscle volume [N/cm³]"] + [models[k]["force_per_muscle_volume_N_per_cm3"] for k in labels],
+        ["outputs"] + [("this page's files" if models[k]["folder"] == "." else f"folder {models[k]['folder']}/")
+                       for k in labels],
+    ]
+    ref = conv["reference"]
+    parts = ["<h2>Models compared (discretisation check, paper Example 2)</h2>",
+             f'<p class="foot">The same case solved on {len(labels)} models; the reference is the finest, '
+             f"<b>{esc(ref)}</b>. Relative difference = (F − F_{esc(ref)}) / |F_{esc(ref)}|.</p>",
+             table(["quantity"] + labels, rows)]
+    worst = conv.get("max_relative_difference") or {}
+    for k in labels[:-1]:
+        r, w = (conv.get("F_max_relative_difference") or {}).get(k), worst.get(k)
+        parts.append(f"<p><b>{esc(k)} vs {esc(ref)}:</b> F_max differs by "
+                     f"{'—' if r is None else f'{100 * r:+.3g} %'}; the largest |relative difference| over the "
+                     f"activation steps is {'—' if w is None else f'{100 * w:.3g} %'}.</p>")
+    parts.append("<h3>End force at each activation</h3>")
+    parts.append(table(conv["header"], conv["rows"]))
+    parts.append('<p class="foot">Data: <code>convergence.csv</code>; every model\'s end force is also a column of '
+                 "<code>force_activation.csv</code>, and each other model has its own <code>force_activation.csv</code>, "
+                 "<code>tissue_table.csv</code>, <code>fields.pvd</code> and <code>summary.json</code> in its folder.</p>")
+    for k in labels:
+        t = tissues.get(k)
+        if t is None:
+            continue
+        keys = [h for h in t["header"] if not h.endswith("nodes")]
+        parts.append(f"<h3>Tissue volumes — {esc(k)} model</h3>")
+        parts.append(table([html_units(h) for h in keys], [[r[h] for h in keys] for r in t["rows"]]))
+    for k, figs in slice_figures.items():
+        if figs:
+            parts.append(f"<h3>Fields on slices — {esc(k)} model</h3>")
+            for spec, path in figs.values():
+                parts.append(f"<figure>{img_tag(path, spec.caption)}<figcaption>{esc(k)} model: "
+                             f"{esc(spec.caption)}</figcaption></figure>")
+    return "\n".join(parts)
+
+
 def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissue: Mapping[str, Any],
                 report_config: Mapping[str, Any], sections: Sequence[str] = ()) -> str:
     """The report page of one results file.

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..errors import InputError
 from ..io.results import load_results
 from ..report import curves as C
 from ..report.config import ReportConfig
@@ -103,6 +104,10 @@ def _write_report(res, results_path: Path, outdir: Path, final: Path, cfg: Repor
 
     header, rows = C.force_table(res.alpha, res.load_factor, res.converged, res.iterations, res.reaction,
                                  summary["force_sets"])
+    others = _other_models(extra, results_path)
+    model_parts: list[str] = []
+    if others:  # several models of one case (coarse and fine): every output for each, and their difference
+        model_parts = _models(res, summary, tissue, others, outdir, final, cfg, header, rows)
     out["force_activation_csv"] = str(C.write_csv(outdir / "force_activation.csv", header, rows))
     # per-muscle forces, force-length, DWI (issue 18): fills the tissue table's per-muscle F_max
     sections = protocol_sections(extra, outdir, summary, tissue, dpi=cfg.dpi, activation=res.info.get("activation"))
@@ -141,10 +146,98 @@ def _write_report(res, results_path: Path, outdir: Path, final: Path, cfg: Repor
     if cfg.html:
         from ..report.html import report_page
 
-        text = report_page(summary, figures, tissue=tissue, report_config=_plain(cfg), sections=sections)
+        text = report_page(summary, figures, tissue=tissue, report_config=_plain(cfg),
+                           sections=model_parts + list(sections))
         (outdir / "index.html").write_text(text, encoding="utf-8")
     (outdir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary
+
+
+def _other_models(extra: dict, results_path: Path) -> dict[str, Path]:
+    """The other models' results files of ``extra["compare"]`` (label → path), and the main one's label
+    under the key ``None``; empty when there is no other model."""
+    compare = {str(k): Path(v) for k, v in dict(extra.get("compare") or {}).items()}
+    main = next((k for k, p in compare.items() if p.resolve() == results_path.resolve()), None)
+    others = {k: p for k, p in compare.items() if k != main}
+    if not others:
+        return {}
+    return {None: main or results_path.stem, **others}
+
+
+def _models(res, summary: dict, tissue: dict, others: dict, outdir: Path, final: Path, cfg: ReportConfig,
+            header: list, rows: list) -> list[str]:
+    """Outputs of the other models (``<label>/``: force_activation.csv, tissue_table.csv, fields,
+    slice figures, summary.json), their end force added to the main CSV rows, ``summary["models"]``
+    and ``summary["convergence"]`` (+ ``convergence.csv``); returns the page's HTML fragment."""
+    from ..report.convergence import convergence_table, force_at
+    from ..report.html import models_section
+
+    main = others.pop(None)
+    warnings = summary["warnings"]
+    per_model = {main: _model_entry(summary, res, ".")}
+    curves = {main: (res.alpha, np.asarray(summary["curve"]["end_force_N"], float), res.converged)}
+    tissues, slice_figs = {main: tissue}, {}
+    for label, path in others.items():
+        try:
+            other = load_results(path)
+        except (InputError, OSError) as exc:
+            warnings.append(f"model '{label}' not reported: {exc}")
+            continue
+        sub = outdir / label
+        sub.mkdir(parents=True, exist_ok=True)
+        s2, t2 = compute_summary(other, cfg, {**summary.get("extra", {}), "label": label})
+        warnings += [f"model {label}: {w}" for w in s2["warnings"] if not w.startswith(("segment: ", "build-model: "))]
+        s2["field_step"] = field_step(other, cfg, warnings)
+        h2, r2 = C.force_table(other.alpha, other.load_factor, other.converged, other.iterations, other.reaction,
+                               s2["force_sets"])
+        o2 = s2["outputs"]
+        o2["force_activation_csv"] = str(C.write_csv(sub / "force_activation.csv", h2, r2))
+        o2["tissue_table_csv"] = str(C.write_csv(sub / "tissue_table.csv", t2["header"], table_csv_rows(t2)))
+        if cfg.vtu and s2["field_step"] is not None:
+            o2.update(_fields(other, cfg, t2, sub, warnings))
+        figs = make_figures(Context(res=other, summary=s2, cfg=cfg, outdir=sub, warnings=warnings, extra={}),
+                            sections=("slices",))
+        for key, (_, p) in figs.items():
+            o2[f"{key}_png"] = str(p)
+        (sub / "summary.json").write_text(json.dumps(s2, indent=2, default=str))
+        o2["summary_json"] = str(sub / "summary.json")
+        per_model[label] = _model_entry(s2, other, label)
+        curves[label] = (other.alpha, np.asarray(s2["curve"]["end_force_N"], float), other.converged)
+        tissues[label], slice_figs[label] = t2, figs
+    if len(curves) < 2:
+        return []
+    # every model's end force in the main CSV, at the main model's α (interpolated between converged states)
+    alpha = np.asarray(res.alpha, float)
+    for label in curves:
+        f = force_at(*curves[label], alpha)
+        header.append(f"end_force {label} [N]")
+        for row, v in zip(rows, f, strict=True):
+            row.append(C._cell(v))
+    conv = convergence_table(curves, {k: v["n_nodes"] for k, v in per_model.items()})
+    summary["convergence"] = conv
+    summary["models"] = per_model
+    summary["outputs"]["convergence_csv"] = str(C.write_csv(outdir / "convergence.csv", conv["header"], conv["rows"]))
+    def reroot(v):
+        if isinstance(v, list):
+            return [reroot(x) for x in v]
+        return str(final / Path(v).relative_to(outdir)) if isinstance(v, str) and Path(v).is_relative_to(outdir) else v
+
+    for entry in per_model.values():
+        entry["outputs"] = {n: reroot(v) for n, v in entry["outputs"].items()}
+    return [models_section(summary, tissues, slice_figs)]
+
+
+def _model_entry(s: dict, res, folder: str) -> dict:
+    """The per-model part of ``summary["models"]``."""
+    return {"label": s["label"], "results": s["results"], "folder": folder, "n_nodes": s["n_nodes"],
+            "cell_volume_cm3": s["cell_volume_cm3"], "coarsen_factor": s["coarsen_factor"],
+            "spacing_cm": [float(x) for x in res.model.spacing], "status": s["status"],
+            "F_max_N": s["F_max_N"], "alpha_at_F_max": s["alpha_at_F_max"], "volumes_cm3": s["volumes_cm3"],
+            "force_per_volume_N_per_cm3": s["force_per_volume_N_per_cm3"],
+            "force_per_muscle_volume_N_per_cm3": s["force_per_muscle_volume_N_per_cm3"],
+            "curve": {"alpha": s["curve"]["alpha"], "end_force_N": s["curve"]["end_force_N"],
+                      "converged": s["curve"]["converged"]},
+            "outputs": s["outputs"] if folder != "." else {}}
 
 
 def _fields(res, cfg: ReportConfig, tissue: dict, outdir: Path, warnings: list) -> dict:
