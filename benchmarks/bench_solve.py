@@ -47,7 +47,7 @@ import numpy as np
 
 OUT = pathlib.Path(__file__).parent / "results"
 SPACING = (0.15625, 0.15625, 0.5)
-SIZES = {"2k": (0.40, 5), "5k": (0.50, 8), "10k": (0.62, 11), "20k": (0.72, 15), "75k": (1.04, 25)}
+SIZES = {"1.5k": (0.45, 3), "2k": (0.40, 5), "5k": (0.50, 8), "10k": (0.62, 11), "20k": (0.72, 15), "75k": (1.04, 25)}
 # the records of docs/performance.md; about 2 h in all, 40 min of it the 74k sweep
 DEFAULT_CASES = ["5k:direct", "5k:direct_reuse", "5k:cg_amg", "10k:direct_reuse", "10k:cg_amg", "20k:direct_reuse",
                  "5k:direct_reuse:1e-3", "5k:direct_reuse:1e-2", "5k:cg_amg:1e-2", "5k:cg_amg:1e-2:0.1",
@@ -261,6 +261,52 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
             "peak_rss_GB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2)}
 
 
+def infsup(size: str, penalty: float | None) -> dict:
+    """Is the patch pressure of the projected energy stable? The spectrum of its Schur complement.
+
+    The projected energy is the condensed form of a mixed problem with one pressure per patch,
+    [K_d Gᵀ; G −D⁻¹], where K_d is the tangent without the patch terms, G (N_p × 3N) the patch
+    dilatation rates g_pᵀ and D = diag(V_p K̄_p). A solver whose iterations do not grow with K/μ
+    (MINRES with AMG on K_d and a diagonal Schur complement) needs S_G = G K_d⁻¹ Gᵀ to be
+    spectrally equivalent to the pressure mass scaled by 1/μ, diag(1/(μ_p V_p)) — the discrete
+    inf-sup condition. This computes the generalised eigenvalues of (S_G, diag(1/(μ_p V_p))) with
+    dense matrices (small models only), at F = I, α = 0.095: eigenvalues near 0 are pressure
+    modes that the displacement field can hardly produce, and they make the iterations grow with K.
+    """
+    import scipy.linalg as sl
+
+    from pixmuscle.mechanics.solve import build_system
+    from pixmuscle.mechanics.tangent import MatrixFreeTangent
+
+    model, cfg = leg_case(size, penalty, volumetric={"method": "projected"})
+    system, _ = build_system(model, cfg)
+    state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.095)
+    n, vol = model.n_nodes, system.volumetric
+    full = system.tangent_operator(state)
+    Kd = MatrixFreeTangent(full.main, full.C, stab=system.stab, penalty=system.penalty)
+    eye = np.eye(3 * n)
+    Kdd = np.column_stack([Kd @ eye[:, k] for k in range(3 * n)])
+    Kdd = 0.5 * (Kdd + Kdd.T)
+    G = np.empty((vol.n_patches, 3 * n))
+    for k in range(3 * n):
+        g = full.main.gradients(eye[:, k].reshape(-1, 3))[0]
+        G[:, k] = vol.Q @ np.einsum("nij,nij->n", state.vol.a, g)
+    SG = G @ np.linalg.solve(Kdd, G.T)
+    A0 = system.A0
+    mu = (A0[:, 0, 1, 0, 1] + A0[:, 0, 2, 0, 2] + A0[:, 1, 2, 1, 2]) / 3.0  # shear moduli, N/cm²
+    mass = 1.0 / ((vol.Q @ mu) * vol.vp)
+    w, V = sl.eigh(SG, np.diag(mass))
+    single = np.bincount(vol.patch_of, minlength=vol.n_patches) == 1
+    where = np.abs(V).argmax(axis=0)  # the patch each mode lives on most
+    small = w < 1e-2
+    return {"size": size, "nodes": n, "patches": vol.n_patches, "single_node_patches": int(single.sum()),
+            "eig_min": float(w[0]), "eig_max": float(w[-1]),
+            "eig_percentiles_1_5_50_95_99": [float(x) for x in np.percentile(w, [1, 5, 50, 95, 99])],
+            "modes_below_0.01": int(small.sum()),
+            "modes_below_0.01_on_single_node_patches": int(np.sum(small & single[where])),
+            "peak_rss_GB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2)}
+
+
 def probe_direct(size: str, penalty: float | None) -> dict:
     """PARDISO's symbolic analysis of the full tangent at ``size``: predicted factor size and
     flops of one factorisation, without factorising (for sizes where that would not fit)."""
@@ -385,9 +431,13 @@ def main(argv=None):
     p.add_argument("--conditioning", default=None, metavar="SIZE",
                    help="CG iterations of one Newton system at SIZE with the bulk moduli x0.1, x1, x10, nodal and "
                         "projected volumetric energy; writes results/bench_solve_conditioning_SIZE.json")
+    p.add_argument("--infsup", default=None, metavar="SIZE",
+                   help="spectrum of the patch-pressure Schur complement against the 1/mu-scaled pressure mass "
+                        "(dense; 1.5k only); writes results/bench_solve_infsup_SIZE.json")
     args = p.parse_args(argv)
     for size, fn, stem in ((args.probe_direct, probe_direct, "bench_solve_probe_direct"), (args.probe, probe, "bench_solve_probe"),
-                           (args.conditioning, conditioning, "bench_solve_conditioning")):
+                           (args.conditioning, conditioning, "bench_solve_conditioning"),
+                           (args.infsup, infsup, "bench_solve_infsup")):
         if size:
             res = fn(size, args.penalty)
             res["command"] = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pixmuscle.model.model import Model, write_model_groups
+from pixmuscle.io.model import write_model_groups
+from pixmuscle.model.model import Model
 from pixmuscle.store import write_dataset, write_stage
 
 SIGN_CONVENTION = ("reaction/<set> is the force (N) the support exerts on the body; force = reaction . n_out, "

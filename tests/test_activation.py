@@ -105,7 +105,7 @@ def test_per_muscle_force_is_the_sum_of_homogeneous_columns():
 
 def test_activation_image_force_matches_columns(tmp_path):
     from pixmuscle.imaging.nifti import load_volume, save_volume
-    from pixmuscle.model.model import save_model
+    from pixmuscle.io.model import save_model
     from pixmuscle.stages.solve import run_solve
 
     model = two_muscle_block()

@@ -254,7 +254,7 @@ def write_nifti(path, data, affine_mm):
 
 
 def test_stage_nifti_round_trip(tmp_path):
-    from pixmuscle.model.model import load_model
+    from pixmuscle.io.model import load_model
     from pixmuscle.stages.build_model import run_build_model
     from pixmuscle.store import read_meta
 
@@ -303,7 +303,7 @@ def write_segmentation(path, labels, muscle_id, names, fiber, affine_cm):
 
 
 def test_stage_segmentation_round_trip_and_wrong_schema(tmp_path):
-    from pixmuscle.model.model import load_model
+    from pixmuscle.io.model import load_model
     from pixmuscle.stages.build_model import run_build_model
     from pixmuscle.stages.coarsen import run_coarsen
 
@@ -344,7 +344,7 @@ def test_stage_segmentation_round_trip_and_wrong_schema(tmp_path):
 
 @pytest.mark.parametrize("components", ["world", "voxel"])
 def test_stage_fibre_image_components(tmp_path, components):
-    from pixmuscle.model.model import load_model
+    from pixmuscle.io.model import load_model
     from pixmuscle.stages.build_model import run_build_model
 
     labels = np.ones((4, 3, 2), np.int16)

@@ -11,7 +11,7 @@ import pytest
 from fixtures_results import write_results_fixture
 
 from pixmuscle import __version__
-from pixmuscle.model.model import save_model
+from pixmuscle.io.model import save_model
 from pixmuscle.verify.mechanics import mask_model
 
 

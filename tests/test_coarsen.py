@@ -8,9 +8,9 @@ import pytest
 from scipy import ndimage
 
 from pixmuscle.errors import InputError
+from pixmuscle.io.model import load_model, save_model
 from pixmuscle.model.build import model_from_labels
 from pixmuscle.model.coarsen import coarsen_model, lattice_offsets
-from pixmuscle.model.model import load_model, save_model
 from pixmuscle.model.tissues import NODE_TISSUES
 
 SPACING = np.array([0.078125, 0.078125, 0.5])          # paper: 1 pixel = 0.078125 cm

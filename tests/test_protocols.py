@@ -15,12 +15,12 @@ import pytest
 
 from pixmuscle.config import parse_section
 from pixmuscle.errors import InputError
+from pixmuscle.io.model import save_model
 from pixmuscle.mechanics import homogeneous
 from pixmuscle.mechanics.config import SolveConfig
 from pixmuscle.mechanics.materials import f_active
 from pixmuscle.mechanics.protocols import ForceLengthConfig, MuscleForcesConfig, decompose, force_length_cases
 from pixmuscle.mechanics.solve import make_materials
-from pixmuscle.model.model import save_model
 from pixmuscle.model.tissues import MUSCLE
 from pixmuscle.report.config import ReportConfig
 from pixmuscle.stages.force_length import load_force_length, run_force_length

@@ -11,12 +11,12 @@ import yaml
 
 from pixmuscle.config import parse_section
 from pixmuscle.errors import InputError, SolverError
+from pixmuscle.io.model import save_model
 from pixmuscle.io.results import load_results
 from pixmuscle.mechanics import pardiso
 from pixmuscle.mechanics.config import SolveConfig
 from pixmuscle.mechanics.linsolve import DirectSolver, make_solver, voxel_aggregates
 from pixmuscle.mechanics.solve import solve
-from pixmuscle.model.model import save_model
 from pixmuscle.verify.mechanics import isometric_check, mask_model, oblique_check, roller_bcs, uniaxial_check
 
 EXAMPLE = """

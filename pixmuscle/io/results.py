@@ -19,9 +19,9 @@ import numpy as np
 
 from ..errors import InputError
 from ..mechanics.results import NEWTON_COLUMNS, Results
-from ..model.model import read_model_groups, write_model_groups
 from ..model.tissues import NODE_TISSUES
 from ..store import open_stage, write_dataset, write_stage
+from .model import read_model_groups, write_model_groups
 
 SCHEMA = "pixmuscle.results"
 VERSION = 1

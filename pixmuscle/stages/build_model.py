@@ -2,7 +2,7 @@
 
 Reads the inputs named by :class:`~pixmuscle.model.config.BuildModelConfig`, calls
 :func:`pixmuscle.model.build.model_from_labels` and writes the model (schema ``pixmuscle.model``
-v1) through :func:`pixmuscle.model.model.save_model`.
+v1) through :func:`pixmuscle.io.model.save_model`.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.lineage import capture_warnings, stage_attrs
+from ..io.model import save_model
 from ..model.build import model_from_labels
 from ..model.config import BuildModelConfig
-from ..model.model import save_model
 from ..store import open_stage, read_strings
 
 _LOG = logging.getLogger(__name__)

@@ -6,8 +6,8 @@ from pathlib import Path
 from typing import Any
 
 from ..io.lineage import capture_warnings, stage_attrs
+from ..io.model import load_model, save_model
 from ..model.coarsen import coarsen_model
-from ..model.model import load_model, save_model
 
 
 def run_coarsen(model_path: str | Path, factor: int, out_path: str | Path, config: Any = None, *,

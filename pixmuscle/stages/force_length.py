@@ -25,9 +25,9 @@ import numpy as np
 
 from ..errors import InputError, SolverError
 from ..io.lineage import capture_warnings, stage_attrs
+from ..io.model import load_model
 from ..mechanics.protocols import ForceLengthConfig, force_length_cases, reference_length
 from ..mechanics.solve import solve
-from ..model.model import load_model
 from ..store import open_stage, write_dataset, write_stage
 from .muscle_forces import end_force_of
 from .solve import model_activation

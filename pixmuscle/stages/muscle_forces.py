@@ -25,10 +25,10 @@ import numpy as np
 
 from ..errors import InputError, SolverError
 from ..io.lineage import capture_warnings, stage_attrs
+from ..io.model import load_model
 from ..mechanics.activation import ActivationRamp
 from ..mechanics.protocols import MuscleForcesConfig, decompose, muscle_force_ramps
 from ..mechanics.solve import solve
-from ..model.model import load_model
 from ..model.tissues import MUSCLE
 from ..store import open_stage, write_dataset, write_stage
 from .solve import model_activation

@@ -11,12 +11,12 @@ from ..config import parse_section
 from ..errors import InputError, SolverError
 from ..imaging.nifti import load_volume
 from ..io.lineage import capture_warnings, stage_attrs
+from ..io.model import load_model
 from ..io.results import save_results
 from ..mechanics.activation import ActivationRamp, activation_ramp, per_muscle_summary
 from ..mechanics.boundary import check_boundary_conditions
 from ..mechanics.config import SolveConfig
 from ..mechanics.solve import solve
-from ..model.model import load_model
 from ..model.tissues import MUSCLE
 from ..outdir import check_free_space, prepare_output_dir
 from ..progress import newton_feed
