@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.pixmuscle-installed
 
-.PHONY: venv demo test bench lint clean
+.PHONY: venv demo test bench bench-scale lint clean
 
 # (re)create the virtual environment and install pixmuscle with its extras when pyproject changes
 $(STAMP): pyproject.toml
@@ -23,6 +23,18 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
+
+# the solver-scale records (issue 12's targets: locking, accuracy and time against voxel FE, Newton,
+# Krylov iterations against K/mu, the 74k sweep at the default tolerances); hours, not minutes
+bench-scale: $(STAMP)
+	$(BIN)/python -m pip install --quiet -e ".[bench]"
+	$(BIN)/python benchmarks/bench_locking.py
+	$(BIN)/python benchmarks/bench_vs_fe.py
+	$(BIN)/python benchmarks/bench_newton.py
+	$(BIN)/python benchmarks/bench_solve.py --conditioning 2k
+	$(BIN)/python benchmarks/bench_solve.py --conditioning 5k
+	$(BIN)/python benchmarks/bench_solve.py --infsup 1.5k
+	$(BIN)/python benchmarks/bench_solve.py --append --cases 75k:cg_amg
 
 lint: $(STAMP)
 	$(BIN)/ruff check pixmuscle tests benchmarks
