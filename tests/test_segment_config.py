@@ -67,12 +67,3 @@ def test_voxel_seeds_are_voxels_of_the_file_as_stored(tmp_path, flip):
     cm = seeds_in_cm(cfg)["m"]
     mm = SegmentConfig(mri=path, seeds={"m": (np.array(cm) * 10).tolist()}, seed_units="mm")
     np.testing.assert_array_equal(seeds_to_voxels(seeds_in_cm(mm), "cm", vol.affine, vol.data.shape)[1][0], ijk[0])
-
-
-def test_bone_lost_in_a_slice_is_a_warning():
-    from pixmuscle.segmentation.pipeline import bone_slice_warnings
-
-    assert bone_slice_warnings([40, 42, 38, 41]) == []
-    w = bone_slice_warnings([40, 42, 3, 41, 0])
-    assert len(w) == 1 and "slice(s) 2 (3 voxels), 4 (0 voxels)" in w[0]
-    assert bone_slice_warnings([0, 0, 0]) == []

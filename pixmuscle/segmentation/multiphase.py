@@ -385,7 +385,9 @@ def regions_to_muscles(regions, domain, seeds, spacing=None, connectivity=1):
     info : dict
         ``shared`` (list of lists of 1-based muscle ids that shared a component),
         ``claimed_fraction`` (domain fraction assigned by rules 1-2),
-        ``seed_region`` (region index at the first seed of each muscle).
+        ``seed_region`` (region index at the first seed of each muscle),
+        ``muscle_voxels`` (M,) domain voxels of each muscle, ``fallback_voxels`` (M,) those of them
+        assigned by the nearest-seed fall-back (rules 2 and 3) rather than by a region of their own.
     """
     regions = np.asarray(regions)
     domain = np.asarray(domain, bool)
@@ -418,12 +420,14 @@ def regions_to_muscles(regions, domain, seeds, spacing=None, connectivity=1):
                 claims[int(c)].append(m)
     shared = []
     objects = ndi.find_objects(comp)
+    split = np.zeros(regions.shape, dtype=bool)
     for c, ms in claims.items():
         in_c = comp == c
         if len(ms) == 1:
             muscle_id[in_c] = ms[0] + 1
             continue
         shared.append(sorted(m + 1 for m in ms))
+        split |= in_c
         # nearest seed within the component's bounding box
         box = objects[c - 1]
         marker = np.zeros(regions.shape, dtype=np.int16)
@@ -446,4 +450,7 @@ def regions_to_muscles(regions, domain, seeds, spacing=None, connectivity=1):
     if rest.any():
         _, idx = ndi.distance_transform_edt(~claimed, sampling=spacing, return_indices=True)
         muscle_id[rest] = muscle_id[tuple(i[rest] for i in idx)]
+    M = len(seeds)
+    info["muscle_voxels"] = np.bincount(muscle_id[domain], minlength=M + 1)[1:M + 1].astype(np.int64)
+    info["fallback_voxels"] = np.bincount(muscle_id[domain & (split | rest)], minlength=M + 1)[1:M + 1].astype(np.int64)
     return muscle_id, info

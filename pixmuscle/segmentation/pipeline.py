@@ -22,6 +22,9 @@ on the whole volume (``mode="3d"``):
    with face connectivity, nearest-seed split of a component that holds several muscles'
    seeds, islands to the nearest assigned muscle).
 4. **Labels**: :func:`pixmuscle.segmentation.assemble.assemble_labels`.
+5. **Quality checks** of the result (:mod:`pixmuscle.segmentation.qc`): a bone or the outline that
+   vanishes or jumps in area between neighbouring slices, a muscle assigned mostly by the
+   nearest-seed fall-back; returned as ``findings`` (the segment stage logs them).
 
 Intensity convention: MRI robustly scaled to [0, 255] (0.5 and 99.5 percentiles of the whole
 volume), fibre channels = 255 x fibre features (:mod:`.features`). Lengths in the level-set
@@ -56,6 +59,7 @@ from pixmuscle.segmentation.multiphase import (
     seed_features,
     seed_regions,
 )
+from pixmuscle.segmentation.qc import bone_areas, segmentation_findings
 
 __all__ = ["SegmentationResult", "segment_volume", "seeds_to_voxels"]
 
@@ -82,6 +86,10 @@ class SegmentationResult:
         Intermediate masks.
     regions : ndarray of int16
         Multiphase region index (-1 outside the muscle domain).
+    findings : list of :class:`~pixmuscle.segmentation.qc.Finding`
+        Quality problems (:func:`pixmuscle.segmentation.qc.segmentation_findings`: a bone or the
+        outline vanishing or jumping in area between slices, muscles assigned mostly by the
+        nearest-seed fall-back); the segment stage logs them as warnings.
     """
 
     labels: np.ndarray
@@ -93,6 +101,7 @@ class SegmentationResult:
     bone: np.ndarray | None = None
     fiber_valid: np.ndarray | None = None
     regions: np.ndarray | None = None
+    findings: list = field(default_factory=list)
 
 
 def seeds_to_voxels(seeds, units, affine, shape):
@@ -130,27 +139,6 @@ def seeds_to_voxels(seeds, units, affine, shape):
         names.append(str(name))
         points.append(ijk)
     return names, points
-
-
-def bone_slice_warnings(per_slice, fraction: float = 0.5) -> list[str]:
-    """Warnings for slices whose bone area dropped below ``fraction`` of the median of the
-    slices that have bone (a bone lost or cut short by the level sets in that slice).
-
-    Parameters
-    ----------
-    per_slice : (K,) int
-        Bone voxels in each slice.
-    """
-    n = np.asarray(per_slice, float)
-    if not (n > 0).any():  # no bone at all (e.g. a single muscle's scan): nothing was lost
-        return []
-    med = float(np.median(n[n > 0]))
-    low = np.flatnonzero(n < fraction * med)
-    if low.size == 0:
-        return []
-    detail = ", ".join(f"{int(k)} ({int(n[k])} voxels)" for k in low[:20])
-    return [f"bone lost or much smaller in slice(s) {detail} (median of the slices with bone: {med:.0f} voxels); "
-            "check the QC overlays and the segment.bone settings"]
 
 
 def _zero_tensor(tensor, covered) -> np.ndarray:
@@ -445,8 +433,6 @@ def segment_volume(mri, affine, dti_tensor_on_grid, covered, imct_mask, imat_mas
     bone = _bones(dark, bright, spacing, cfg)
     qc["bone_bright_iterations"], qc["bone_dark_iterations"] = it1, it2
     qc["bone_converged"] = cv1 & cv2
-    for w in bone_slice_warnings(bone.reshape(bone.shape[0], -1).sum(axis=1)):
-        _LOG.warning("%s", w)
     step("bones", voxels=int(bone.sum()))
 
     # 3. fibre data
@@ -485,6 +471,7 @@ def segment_volume(mri, affine, dti_tensor_on_grid, covered, imct_mask, imat_mas
     qc["multiphase_iterations"], qc["multiphase_converged"] = it, cv
     qc["shared_regions"] = info["shared"]
     qc["claimed_fraction"] = info["claimed_fraction"]
+    qc["muscle_domain_voxels"], qc["fallback_voxels"] = info["muscle_voxels"], info["fallback_voxels"]
     qc["seed_region"] = np.array(info["seed_region"])
     qc["seed_voxels_ijk"] = [s[:, [1, 2, 0]] for s in seeds_t]
     step("muscles", shared=len(info["shared"]))
@@ -509,7 +496,11 @@ def segment_volume(mri, affine, dti_tensor_on_grid, covered, imct_mask, imat_mas
     qc["no_signal_voxels"] = no_signal_per_muscle(no_signal, mid, len(names), spacing_ijk)
     for w in no_signal_warnings(qc["no_signal_voxels"], qc["muscle_voxels"], names):
         _LOG.warning("%s", w)
+    findings = segmentation_findings(labels, affine, fallback_voxels=info["fallback_voxels"],
+                                     muscle_voxels=info["muscle_voxels"], names=names)
+    qc["outline_voxels_per_slice"] = (labels > 0).reshape(-1, shape[2]).sum(axis=0)
+    qc["bone_voxels_per_slice"] = bone_areas(labels == 4)
     step("labels")
     return SegmentationResult(labels=labels, muscle_id=mid, muscle_names=names, fiber=fiber,
                               qc=qc, leg=back(leg), bone=back(bone), fiber_valid=valid,
-                              regions=back(regions))
+                              regions=back(regions), findings=findings)

@@ -147,6 +147,8 @@ def _segment(cfg, qc_dir, progress):
     else:
         res = segment_volume(mri.data, affine, d_grid, covered, imct, imat, cfg,
                              progress=progress)
+    for finding in res.findings:  # segmentation QC (segmentation/qc.py): into the log, the file, the report
+        _LOG.warning("segmentation QC: %s", finding.message)
     return mri, res, inputs
 
 
