@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import field
+from pathlib import Path
 from typing import Literal
 
 from ..errors import InputError
@@ -13,8 +14,9 @@ from ..errors import InputError
 class ReportConfig:
     """Which report outputs to write and how.
 
-    The force–activation CSV/PNG, the tissue table and ``summary.json`` are always written;
-    the flags below switch the heavier outputs.
+    The force–activation CSV/PNG (a displacement-driven run: ``force_displacement.csv/png``, see
+    :mod:`pixmuscle.report.displacement`), the tissue table (activation runs) and ``summary.json``
+    are always written; the flags below switch the heavier outputs.
     """
 
     vtu: bool = field(default=True, metadata={"doc": "write the ParaView VTU time series (fields/*.vtu + fields.pvd): the model's voxel cells with cell and point data"})
@@ -32,6 +34,8 @@ class ReportConfig:
     slice_step: int | None = field(default=None, metadata={"range": (0, None), "doc": "step shown on the slice figures (default: last converged step)"})
     arrows: bool = field(default=True, metadata={"doc": "draw in-plane displacement arrows on the displacement slices"})
     imat_rule: Literal["enclosed", "near_muscle"] = field(default="enclosed", metadata={"doc": "IMAT = fat not connected in its slice to the outside (enclosed), or fat within attach_distance of muscle (near_muscle)"})
+    reference_curve: Path | None = field(default=None, metadata={"must_exist": True, "doc": "displacement-driven runs: CSV (columns displacement_cm, force_N) of a reference force against the prescribed displacement, drawn beside the end force (e.g. data/synthetic/tendon_fe_reference.csv, the finite-element tendon of `pixmuscle verify tendon`)"})
+    reference_label: str = field(default="reference", metadata={"doc": "legend and table label of reference_curve"})
     attach_distance: float = field(default=2.0, metadata={"gt": 0, "doc": "IMAT/IMCT are attributed to the muscle of the nearest muscle node within this many cells (Chebyshev distance in grid cells)"})
 
     def __post_init__(self):

@@ -78,8 +78,23 @@ def make_figures(ctx: Context, sections=None) -> dict[str, tuple[FigureSpec, Pat
 
 
 # ------------------------------------------------------------------------------------------ figures
+def _by_displacement(ctx: Context) -> bool:
+    return (ctx.summary.get("protocol") or {}).get("kind") == "displacement"
+
+
+def _state(ctx: Context, step: int) -> str:
+    """How far the load had gone at ``step``: its α, or the driving set's displacement."""
+    if _by_displacement(ctx):
+        p = ctx.summary["protocol"]
+        d = ctx.summary["curve"]["displacement_cm"][step]
+        return f"{p['set']} displaced {d:.3g} cm along {p['component']}"
+    return f"α = {float(ctx.res.alpha[step]):.3g}"
+
+
 @figure("force_activation", "force", "End force vs activation (mean of the force sets; other models overlaid)")
 def _force_activation(ctx: Context) -> Path | None:
+    if _by_displacement(ctx):
+        return None
     res, summary, extra = ctx.res, ctx.summary, ctx.extra
     path = Path(summary["results"]) if summary["results"] else None
     compare = dict(extra.get("compare") or {})
@@ -93,6 +108,27 @@ def _force_activation(ctx: Context) -> Path | None:
         curves[str(lab)] = tuple(c)
     return C.plot_force_activation(curves, ctx.outdir / "force_activation.png", dpi=ctx.cfg.dpi,
                                    title=f"Isometric force vs activation — {summary['label']}")
+
+
+@figure("force_displacement", "force", "End force vs the prescribed displacement (mean of the force sets), beside "
+                                      "the reference curve of report.reference_curve; lower panel: relative difference")
+def _force_displacement(ctx: Context) -> Path | None:
+    if not _by_displacement(ctx):
+        return None
+    s = ctx.summary
+    p, c = s["protocol"], s["curve"]
+    d = np.array(c["displacement_cm"], float)
+    curves = {"end force (mean of " + ", ".join(s["force_sets"]) + ")": (d, np.array(c["end_force_N"], float),
+                                                                      np.array(c["converged"], bool))}
+    ref = s.get("reference")
+    from .displacement import plot_force_displacement
+
+    return plot_force_displacement(
+        curves, ctx.outdir / "force_displacement.png", dpi=ctx.cfg.dpi,
+        reference=None if not ref else (ref["label"], ref["curve"]["displacement_cm"], ref["curve"]["force_N"]),
+        relative=None if not ref else [np.nan if r is None else r for r in ref["relative"]],
+        xlabel=f"prescribed displacement of {p['set']} along {p['component']} [cm]",
+        title=f"Force vs prescribed displacement — {s['label']}")
 
 
 def _compare_curves(compare: dict, main: Path | None, ctx: Context) -> dict:
@@ -181,9 +217,8 @@ def _slices_u(ctx: Context) -> Path | None:
     if not np.isfinite(umag).any():
         return None
     at = plane_indices(m.ijk, m.origin, m.spacing, ctx.cfg.slice_position)
-    a = float(ctx.res.alpha[step])
     return plot_slices(m.ijk, m.origin, m.spacing, umag, ctx.outdir / "slices_displacement.png", label="|u| [cm]",
-                       title=f"Displacement magnitude, step {step} (α = {a:.3g}), on the reference configuration",
+                       title=f"Displacement magnitude, step {step} ({_state(ctx, step)}), on the reference configuration",
                        planes_at=at, vectors=fields.u if ctx.cfg.arrows else None, cmap="viridis", dpi=ctx.cfg.dpi)
 
 
@@ -204,10 +239,9 @@ def _slices_s(ctx: Context) -> Path | None:
     if not np.isfinite(mp).all():
         ctx.warnings.append(f"max principal stress at step {step} has non-finite values (blank on the slices)")
     at = plane_indices(m.ijk, m.origin, m.spacing, ctx.cfg.slice_position)
-    a = float(ctx.res.alpha[step])
     return plot_slices(m.ijk, m.origin, m.spacing, mp, ctx.outdir / "slices_stress.png",
                        label="max principal Cauchy stress [N/cm²]",
-                       title=f"Maximum principal Cauchy stress, step {step} (α = {a:.3g}), on the reference configuration",
+                       title=f"Maximum principal Cauchy stress, step {step} ({_state(ctx, step)}), on the reference configuration",
                        planes_at=at, cmap="magma", dpi=ctx.cfg.dpi)
 
 

@@ -201,6 +201,48 @@ def models_section(summary: Mapping[str, Any], tissues: Mapping[str, Mapping[str
     return "\n".join(parts)
 
 
+def _displacement_facts(summary: Mapping[str, Any]) -> dict:
+    """Facts of a displacement-driven run (:mod:`pixmuscle.report.displacement`): what was displaced, the
+    end force at the last converged state and the reference there."""
+    p, c = summary["protocol"], summary["curve"]
+    ok = [k for k, v in enumerate(c["converged"]) if v and c["end_force_N"][k] is not None]
+    facts = {"loading": f"{p['set']} displaced along {p['component']} (prescribed displacement; no activation)",
+             "volume [cm³]": summary["volumes_cm3"].get("total")}
+    if ok:
+        k = ok[-1]
+        facts[f"end force at {p['component']} displacement {fmt(c['displacement_cm'][k])} cm [N] (step {k})"] = \
+            c["end_force_N"][k]
+    ref = summary.get("reference") or {}
+    if ref.get("final"):
+        fin = ref["final"]
+        facts[f"{ref['label']} there [N]"] = fin["reference_N"]
+        facts["relative difference there"] = f"{100 * fin['relative']:+.2f} %"
+    if ref.get("max_abs_relative") is not None:
+        facts["largest |relative difference| over the steps"] = f"{100 * ref['max_abs_relative']:.2f} %"
+    return facts
+
+
+def _displacement_section(summary: Mapping[str, Any], figures: Mapping[str, Any]) -> list[str]:
+    """The force section of a displacement-driven run: the figure, the per-step table, the reference."""
+    from .displacement import displacement_table
+
+    ref = summary.get("reference")
+    parts = ["<h2>Force–displacement</h2>",
+             '<p class="foot">Displacement-driven run: the activation is constant and the end set named below is '
+             "moved by a prescribed displacement, ramped over the load steps. Force at each fixed end = reaction · "
+             "outward normal (N); positive = tension. Data: <code>force_displacement.csv</code>.</p>"]
+    parts += _figures(figures, "force")
+    h, rows = displacement_table(summary)
+    parts.append(table(h, rows))
+    if ref:
+        parts.append(f'<p class="foot">Reference: <b>{esc(ref["label"])}</b>, from <code>{esc(ref["file"])}</code> '
+                     "(report.reference_curve), interpolated linearly at the run's displacements.</p>")
+    else:
+        parts.append('<p class="foot">No reference curve (set <code>report.reference_curve</code> to a CSV with the '
+                     "columns displacement_cm and force_N to draw one beside the force).</p>")
+    return parts
+
+
 def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissue: Mapping[str, Any],
                 report_config: Mapping[str, Any], sections: Sequence[str] = ()) -> str:
     """The report page of one results file.
@@ -229,6 +271,7 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
     parts.append(status_box(summary["status"]))
     fmax = summary.get("F_max_N")
     nw = summary["newton"]
+    by_displacement = (summary.get("protocol") or {}).get("kind") == "displacement"
     facts = {
         "results file": summary["results"],
         "nodes": summary["n_nodes"],
@@ -236,13 +279,15 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
         "cell volume [cm³]": summary["cell_volume_cm3"],
         "coarsen factor": summary.get("coarsen_factor"),
         "force sets (axial reaction R·n_out)": ", ".join(summary["force_sets"]) or "none",
-        "F_max [N] (converged steps)": fmax,
-        "α at F_max": summary.get("alpha_at_F_max"),
-        "force per unit total volume [N/cm³]": summary.get("force_per_volume_N_per_cm3"),
-        "converged states": f"{nw['n_converged']} of {nw['n_steps']} stored"
-                            + (f" (load steps planned: {nw['n_steps_planned']}, plus the initial state)"
-                               if nw.get("n_steps_planned") else ""),
     }
+    if by_displacement:
+        facts.update(_displacement_facts(summary))
+    else:
+        facts.update({"F_max [N] (converged steps)": fmax, "α at F_max": summary.get("alpha_at_F_max"),
+                      "force per unit total volume [N/cm³]": summary.get("force_per_volume_N_per_cm3")})
+    facts["converged states"] = (f"{nw['n_converged']} of {nw['n_steps']} stored"
+                                 + (f" (load steps planned: {nw['n_steps_planned']}, plus the initial state)"
+                                    if nw.get("n_steps_planned") else ""))
     parts.append(kv_table(facts))
 
     parts.append("<h2>Warnings</h2>")
@@ -254,17 +299,20 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
     else:
         parts.append("<p>None, in any stage.</p>")
 
-    parts.append(f"<h2>{esc(SECTIONS['force'])}</h2>")
-    parts.append('<p class="foot">Force at each fixed end = reaction · outward normal (N); positive = the muscle '
-                 "pulls on the support. Data: <code>force_activation.csv</code>.</p>")
-    parts += _figures(figures, "force")
+    if by_displacement:
+        parts += _displacement_section(summary, figures)
+    else:
+        parts.append(f"<h2>{esc(SECTIONS['force'])}</h2>")
+        parts.append('<p class="foot">Force at each fixed end = reaction · outward normal (N); positive = the muscle '
+                     "pulls on the support. Data: <code>force_activation.csv</code>.</p>")
+        parts += _figures(figures, "force")
 
-    parts.append("<h2>Tissue volumes and force (paper Table 3)</h2>")
-    hdr = [html_units(h) for h in tissue["header"] if not h.endswith("nodes")]
-    keys = [h for h in tissue["header"] if not h.endswith("nodes")]
-    parts.append(table(hdr, [[r[k] for k in keys] for r in tissue["rows"]]))
-    parts.append(f'<p class="foot">{esc(tissue["footnote"])} Cell volume {fmt(tissue["cell_volume_cm3"])} cm³. '
-                 "Data (with node counts): <code>tissue_table.csv</code>.</p>")
+        parts.append("<h2>Tissue volumes and force (paper Table 3)</h2>")
+        hdr = [html_units(h) for h in tissue["header"] if not h.endswith("nodes")]
+        keys = [h for h in tissue["header"] if not h.endswith("nodes")]
+        parts.append(table(hdr, [[r[k] for k in keys] for r in tissue["rows"]]))
+        parts.append(f'<p class="foot">{esc(tissue["footnote"])} Cell volume {fmt(tissue["cell_volume_cm3"])} cm³. '
+                     "Data (with node counts): <code>tissue_table.csv</code>.</p>")
 
     qc = summary.get("segmentation_qc") or {}
     seg_figs = _figures(figures, "segmentation")
@@ -299,8 +347,10 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
         parts.append(f'<p class="foot">Planes through x = {pos[0]:.3g} cm, y = {pos[1]:.3g} cm, z = {pos[2]:.3g} cm. '
                      "Arrows: in-plane displacement, drawn to the length scale given in the figure key.</p>")
     if summary["outputs"].get("fields_pvd"):
-        parts.append('<p class="foot">ParaView: open <code>fields.pvd</code> (time = activation α, or step number '
-                     "when α does not increase) or <code>fields.xdmf</code>. The files hold the model's voxel cells "
+        clock = ("the prescribed displacement in cm, or step number when it does not increase" if by_displacement
+                 else "activation α, or step number when α does not increase")
+        parts.append(f'<p class="foot">ParaView: open <code>fields.pvd</code> (time = {clock}) '
+                     "or <code>fields.xdmf</code>. The files hold the model's voxel cells "
                      "(reference configuration, cm): Slice, Clip and Threshold return cells; apply <i>Warp By Vector</i> "
                      "with <code>displacement [cm]</code> for the deformed body. Units and the tissue and muscle names "
                      "are in the field data.</p>")

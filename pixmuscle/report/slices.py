@@ -16,6 +16,10 @@ from ..errors import InputError
 
 #: plane name → (normal axis, horizontal axis, vertical axis)
 PLANES = {"transverse": (2, 0, 1), "coronal": (1, 0, 2), "sagittal": (0, 1, 2)}
+#: the same for a body much longer along z than across (a tendon): z horizontal, one panel per row
+PLANES_LONG = {"transverse": (2, 0, 1), "coronal": (1, 2, 0), "sagittal": (0, 2, 1)}
+#: z extent / largest in-plane extent above which a body is drawn as long
+LONG_RATIO = 3.0
 AXIS = "xyz"
 
 
@@ -67,9 +71,18 @@ def plane_image(ijk: np.ndarray, values: np.ndarray, axis: int, index: int, haxi
     return img, lo
 
 
+def _samples(n: int, step: int) -> np.ndarray:
+    """Indices 0..n-1 every ``step``, placed symmetrically about the middle (so a thin body gets its centre line)."""
+    c = (n - 1) // 2
+    return c + step * np.arange(-(c // step), (n - 1 - c) // step + 1)
+
+
 def plot_slices(ijk, origin, spacing, values, path, *, label: str, title: str, planes_at=None,
                 vectors: np.ndarray | None = None, cmap: str = "viridis", dpi: int = 120) -> Path:
     """Three-panel figure of a scalar nodal field on the transverse (z), coronal (y) and sagittal (x) planes.
+
+    Side by side with z vertical; a body more than ``LONG_RATIO`` times longer along z than across
+    (a tendon) one panel per row with z horizontal, so that titles and tick labels have room.
 
     Parameters
     ----------
@@ -86,6 +99,7 @@ def plot_slices(ijk, origin, spacing, values, path, *, label: str, title: str, p
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     origin, spacing = np.asarray(origin, float), np.asarray(spacing, float)
     values = np.asarray(values, float)
@@ -97,17 +111,29 @@ def plot_slices(ijk, origin, spacing, values, path, *, label: str, title: str, p
         vmax = vmin + max(abs(vmin), 1.0) * 1e-6
     at = plane_indices(ijk, origin, spacing) if planes_at is None else np.asarray(planes_at)
     cm = plt.get_cmap(cmap).with_extremes(bad="white")
+    extent_cm = (np.ptp(np.asarray(ijk), axis=0) + 1) * spacing
+    long = extent_cm[2] > LONG_RATIO * max(extent_cm[0], extent_cm[1])
     panels = []
-    for pname, (ax_n, h, v) in PLANES.items():  # three planes
+    for pname, (ax_n, h, v) in (PLANES_LONG if long else PLANES).items():  # three planes
         img, lo = plane_image(ijk, values, ax_n, int(at[ax_n]), h, v)
         x0 = origin[h] + (lo[0] - 0.5) * spacing[h]
         y0 = origin[v] + (lo[1] - 0.5) * spacing[v]
         panels.append((pname, ax_n, h, v, img, x0, y0, (x0, x0 + img.shape[1] * spacing[h], y0, y0 + img.shape[0] * spacing[v])))
     widths = [e[1] - e[0] for *_, e in panels]
-    height = max(e[3] - e[2] for *_, e in panels)
-    # figure height from the panels' true aspect: no empty bands above and below
-    fig_h = min(9.0, max(3.0, 11.0 * height / sum(widths) + (2.3 if vectors is not None else 1.9)))
-    fig, axes = plt.subplots(1, 3, figsize=(13.0, fig_h), layout="constrained", gridspec_kw={"width_ratios": widths})
+    heights = [e[3] - e[2] for *_, e in panels]
+    if long:  # one panel per row, z along the rows; each row tall enough for its title and tick labels
+        scale = 11.0 / max(widths)  # inch per cm
+        rows = [max(hh * scale, 1.1) for hh in heights]
+        fig_h = min(9.0, sum(rows) + 3 * 0.75 + 0.5)
+        fig = plt.figure(figsize=(13.0, fig_h), layout="constrained")
+        # the transverse panel at the left of its row, as wide as its aspect needs at the row's height
+        a = float(np.clip(widths[0] / heights[0] * rows[0] / 11.5, 0.15, 0.95))
+        gs = fig.add_gridspec(3, 2, height_ratios=rows, width_ratios=[a, 1.0 - a])
+        axes = [fig.add_subplot(gs[0, 0]), fig.add_subplot(gs[1, :]), fig.add_subplot(gs[2, :])]
+    else:
+        # figure height from the panels' true aspect: no empty bands above and below
+        fig_h = min(9.0, max(3.0, 11.0 * max(heights) / sum(widths) + (2.3 if vectors is not None else 1.9)))
+        fig, axes = plt.subplots(1, 3, figsize=(13.0, fig_h), layout="constrained", gridspec_kw={"width_ratios": widths})
     arrow = None
     if vectors is not None:
         vin = np.asarray(vectors, float)
@@ -121,22 +147,28 @@ def plot_slices(ijk, origin, spacing, values, path, *, label: str, title: str, p
                        interpolation="nearest", aspect="equal")
         if arrow is not None:
             vec, _ = plane_image(ijk, np.asarray(vectors, float)[:, [h, v]], ax_n, int(at[ax_n]), h, v)
-            sh = max(1, img.shape[1] // 16)
-            sv = max(1, img.shape[0] // 16)
-            jj, ii = np.meshgrid(np.arange(0, img.shape[1], sh), np.arange(0, img.shape[0], sv))
+            if long:  # the same spacing in cm along both axes of the long panels
+                sh, sv = (max(1, int(round(step_cm / spacing[a]))) for a in (h, v))
+            else:
+                sh, sv = max(1, img.shape[1] // 16), max(1, img.shape[0] // 16)
+            jj, ii = np.meshgrid(*(_samples(n, st) if long else np.arange(0, n, st)
+                                   for n, st in ((img.shape[1], sh), (img.shape[0], sv))))
             vx, vy = vec[ii, jj, 0], vec[ii, jj, 1]
             ok = np.isfinite(vx) & np.isfinite(vy)
             if ok.any():
                 q = ax.quiver(x0 + (jj[ok] + 0.5) * spacing[h], y0 + (ii[ok] + 0.5) * spacing[v], vx[ok], vy[ok],
                               color="k", width=0.004, alpha=0.8, angles="xy", scale_units="xy", scale=arrow[1])
-                if ax is axes[0]:
+                if ax is axes[1 if long else 0]:  # long: the key on a panel at the scale of the arrows
                     key = float(f"{arrow[0]:.1g}")
-                    ax.quiverkey(q, 0.02, -0.24, key, f"{key:g} cm displacement (arrows {1 / arrow[1]:.3g}× true length)",
+                    ax.quiverkey(q, *((0.06, 1.12) if long else (0.02, -0.24)), key,
+                                 f"{key:g} cm displacement (arrows {1 / arrow[1]:.3g}× true length)",
                                  labelpos="E", coordinates="axes", fontproperties={"size": 8})
         pos = origin[ax_n] + at[ax_n] * spacing[ax_n]
-        ax.set_title(f"{pname}: {AXIS[ax_n]} = {pos:.3g} cm")
+        ax.set_title(f"{pname}: {AXIS[ax_n]} = {pos:.3g} cm", fontsize=10)
         ax.set_xlabel(f"{AXIS[h]} [cm]")
         ax.set_ylabel(f"{AXIS[v]} [cm]")
+        ax.xaxis.set_major_locator(MaxNLocator(nbins=6 if long else 4))  # tick labels never run into each other
+        ax.yaxis.set_major_locator(MaxNLocator(nbins=4))
     cb = fig.colorbar(im, ax=list(axes), label=label, fraction=0.025, pad=0.01, aspect=12)
     cb.ax.tick_params(labelsize=9)
     fig.suptitle(title)

@@ -16,6 +16,7 @@ from ..mechanics.results import Results
 from ..store import _plain
 from . import curves as C
 from .config import ReportConfig
+from .displacement import ACTIVATION, run_protocol
 from .tables import tissue_table
 
 #: relative constraint gap above which the report warns
@@ -69,6 +70,10 @@ def newton_table(summary: dict) -> tuple[list[str], list[list]]:
     c, nw = summary["curve"], summary["newton"]
     cols = {"step": c["step"], "α [-]": c["alpha"], "load factor [-]": c["load_factor"],
             "Newton iterations": nw["iterations"]}
+    if (summary.get("protocol") or {}).get("kind") == "displacement":  # α is constant: the displacement instead
+        p = summary["protocol"]
+        del cols["α [-]"]
+        cols = {"step": cols.pop("step"), f"{p['set']}.u{p['component']} [cm]": c["displacement_cm"], **cols}
     if nw["cutbacks"] is not None and len(nw["cutbacks"]) == len(c["step"]) and any(nw["cutbacks"]):
         cols["cutbacks"] = nw["cutbacks"]
     for key, head in (("final_residual", "final residual [N]"), ("final_relative_residual", "final relative residual"),
@@ -95,7 +100,10 @@ def compute_summary(res: Results, cfg: ReportConfig | None = None, extra: dict |
     -------
     summary : dict
         JSON-ready: ``label``, ``title``, ``status``, ``failed``, ``synthetic``, ``curve`` (per-step
-        α, load factor, converged, axial force per end set and end force, N), ``force_sets``,
+        α, load factor, converged, axial force per end set and end force, N; ``displacement_cm`` of
+        the driving set in a displacement-driven run), ``force_sets``, ``protocol`` (``kind``
+        "activation" or "displacement", :func:`~pixmuscle.report.displacement.run_protocol`; the
+        activation quantities below are None for a displacement-driven run),
         ``F_max_N``, ``alpha_at_F_max``, ``volumes_cm3``, ``force_per_volume_N_per_cm3``,
         ``force_per_muscle_volume_N_per_cm3``, ``tissue_table`` (rows), ``newton`` statistics,
         ``constraint_gap``, ``stages`` (config, provenance and warnings of every stage),
@@ -149,9 +157,11 @@ def compute_summary(res: Results, cfg: ReportConfig | None = None, extra: dict |
     elif force_sets:
         warnings.append("no converged step with a finite end force: F_max not available")
 
+    protocol = run_protocol(res.alpha, res.prescribed)
+    by_activation = protocol["kind"] == ACTIVATION
     m = res.model
-    tissue = tissue_table(m.ijk, m.tissue, m.muscle_id, m.shape, m.spacing, m.muscle_names, f_max=f_max,
-                          rule=cfg.imat_rule, attach_distance=cfg.attach_distance)
+    tissue = tissue_table(m.ijk, m.tissue, m.muscle_id, m.shape, m.spacing, m.muscle_names,
+                          f_max=f_max if by_activation else None, rule=cfg.imat_rule, attach_distance=cfg.attach_distance)
     vol = tissue["volumes_cm3"]
     per_step = C.newton_per_step(res.newton, s1)
     cut = None if res.cutbacks is None else np.asarray(res.cutbacks).ravel()
@@ -177,11 +187,13 @@ def compute_summary(res: Results, cfg: ReportConfig | None = None, extra: dict |
             "converged": [bool(c) for c in conv], "axial_force_N": {s: _floats(axial[s]) for s in ends},
             "end_force_N": _floats(fend),
         },
+        "protocol": {k: v for k, v in protocol.items() if k != "displacement_cm"},
         "F_max_N": f_max,
-        "alpha_at_F_max": a_at,
+        "alpha_at_F_max": a_at if by_activation else None,
         "volumes_cm3": vol,
-        "force_per_volume_N_per_cm3": tissue["force_per_volume_N_per_cm3"],
-        "force_per_muscle_volume_N_per_cm3": (f_max / vol["muscle"]) if f_max is not None and vol["muscle"] > 0 else None,
+        "force_per_volume_N_per_cm3": tissue["force_per_volume_N_per_cm3"] if by_activation else None,
+        "force_per_muscle_volume_N_per_cm3": (f_max / vol["muscle"]) if by_activation and f_max is not None
+                                             and vol["muscle"] > 0 else None,
         "tissue_table": [dict(r) for r in tissue["rows"]],
         "tissue_footnote": tissue["footnote"],
         "newton": {
@@ -202,4 +214,6 @@ def compute_summary(res: Results, cfg: ReportConfig | None = None, extra: dict |
         "extra": _jsonable(extra),
         "outputs": {},
     }
+    if not by_activation:
+        summary["curve"]["displacement_cm"] = _floats(protocol["displacement_cm"])
     return summary, tissue

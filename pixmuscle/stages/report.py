@@ -4,6 +4,8 @@ Outputs in ``outdir``:
 
 ``force_activation.csv`` / ``.png``   force at the fixed ends vs activation (paper Figs. 11, 15c)
 ``tissue_table.csv``                  volumes of muscle, IMAT, IMCT per muscle and total, F_max (Table 3)
+``force_displacement.csv`` / ``.png`` instead of the two above when the run is displacement-driven (α constant,
+                                      a set displaced: paper Example 1), with ``report.reference_curve`` beside it
 ``fields.pvd`` + ``fields/step_XXXX.vtu``   the model's voxel cells with the fields, for ParaView
 ``fields.xdmf`` + ``fields.h5``       the same series as XDMF + HDF5
 ``view3d.png``, ``slices_*.png``, ``newton.png``   the figures of :mod:`pixmuscle.report.figures`
@@ -27,6 +29,7 @@ from .. import __version__
 from ..errors import InputError
 from ..io.results import load_results
 from ..report import curves as C
+from ..report import displacement as D
 from ..report.config import ReportConfig
 from ..report.figures import Context, field_step, make_figures
 from ..report.summary import compute_summary
@@ -104,17 +107,24 @@ def _write_report(res, results_path: Path, outdir: Path, final: Path, cfg: Repor
 
     header, rows = C.force_table(res.alpha, res.load_factor, res.converged, res.iterations, res.reaction,
                                  summary["force_sets"])
-    others = _other_models(extra, results_path)
     model_parts: list[str] = []
-    if others:  # several models of one case (coarse and fine): every output for each, and their difference
-        model_parts = _models(res, summary, tissue, others, outdir, final, cfg, header, rows)
-    out["force_activation_csv"] = str(C.write_csv(outdir / "force_activation.csv", header, rows))
+    by_activation = summary["protocol"]["kind"] == "activation"
+    if by_activation:
+        others = _other_models(extra, results_path)
+        if others:  # several models of one case (coarse and fine): every output for each, and their difference
+            model_parts = _models(res, summary, tissue, others, outdir, final, cfg, header, rows)
+        out["force_activation_csv"] = str(C.write_csv(outdir / "force_activation.csv", header, rows))
+    else:  # displacement-driven (report/displacement.py): force vs displacement, a reference beside it
+        _reference(summary, cfg)
+        header, rows = D.displacement_csv(header, rows, summary)
+        out["force_displacement_csv"] = str(C.write_csv(outdir / "force_displacement.csv", header, rows))
     # per-muscle forces, force-length, DWI (issue 18): fills the tissue table's per-muscle F_max
     sections = protocol_sections(extra, outdir, summary, tissue, dpi=cfg.dpi, activation=res.info.get("activation"))
-    out["tissue_table_csv"] = str(C.write_csv(outdir / "tissue_table.csv", tissue["header"], table_csv_rows(tissue)))
+    if by_activation:
+        out["tissue_table_csv"] = str(C.write_csv(outdir / "tissue_table.csv", tissue["header"], table_csv_rows(tissue)))
 
     if cfg.vtu and summary["field_step"] is not None:
-        out.update(_fields(res, cfg, tissue, outdir, warnings))
+        out.update(_fields(res, cfg, tissue, outdir, warnings, displacement=summary["curve"].get("displacement_cm")))
 
     figures = make_figures(Context(res=res, summary=summary, cfg=cfg, outdir=outdir, warnings=warnings, extra=extra))
     for key, (_, p) in figures.items():
@@ -151,6 +161,18 @@ def _write_report(res, results_path: Path, outdir: Path, final: Path, cfg: Repor
         (outdir / "index.html").write_text(text, encoding="utf-8")
     (outdir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary
+
+
+def _reference(summary: dict, cfg: ReportConfig) -> None:
+    """``summary["reference"]`` from ``report.reference_curve`` (a displacement-driven run)."""
+    if cfg.reference_curve is None:
+        return
+    d = np.array(summary["curve"]["displacement_cm"], float)
+    curve = D.read_reference_curve(cfg.reference_curve)
+    summary["reference"] = D.reference_entry(summary, d, cfg.reference_label, cfg.reference_curve, curve)
+    if (d > curve[0].max() + 1e-9).any() or (d < curve[0].min() - 1e-9).any():
+        summary["warnings"].append(f"report.reference_curve covers {curve[0].min():.3g}–{curve[0].max():.3g} cm, the run "
+                                   f"{d.min():.3g}–{d.max():.3g} cm: no comparison outside")
 
 
 def _other_models(extra: dict, results_path: Path) -> dict[str, Path]:
@@ -240,17 +262,20 @@ def _model_entry(s: dict, res, folder: str) -> dict:
             "outputs": s["outputs"] if folder != "." else {}}
 
 
-def _fields(res, cfg: ReportConfig, tissue: dict, outdir: Path, warnings: list) -> dict:
+def _fields(res, cfg: ReportConfig, tissue: dict, outdir: Path, warnings: list, displacement=None) -> dict:
+    """VTU/XDMF series; time = α, or the prescribed displacement (cm) of a displacement-driven run
+    (``displacement``: per state), or the step number when that does not increase."""
     from ..progress import progress
     from ..report.fields import vtu_steps, write_vtu_series
 
     m = res.model
     steps = vtu_steps(res.converged, cfg.every_nth_step)
-    a = res.alpha[steps]
+    a = res.alpha[steps] if displacement is None else np.abs(np.asarray(displacement, float)[steps])
     increasing = bool(np.all(np.diff(a) > 0))
     times = a if increasing else steps.astype(float)
     if not increasing:
-        warnings.append("α does not increase over the exported steps: fields.pvd uses the step number as time")
+        warnings.append(f"{'α' if displacement is None else 'the prescribed displacement'} does not increase over "
+                        "the exported steps: fields.pvd uses the step number as time")
     with progress(len(steps), "writing fields") as bar:
         written = write_vtu_series(outdir, steps, times, res.step, ijk=m.ijk, origin=m.origin, spacing=m.spacing,
                                    fiber=m.fiber, tissue=m.tissue, muscle_id=m.muscle_id,
