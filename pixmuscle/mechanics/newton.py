@@ -20,12 +20,21 @@ The force scale in the first test is the size of the internal (= penalty, at equ
 not the first residual of the step, which is dominated by the penalty forces of the new prescribed
 displacements and would make the test far too loose.
 
-Line search: the full Newton step is accepted when it lowers ‖r‖ or Π; otherwise (and when a trial
-state inverts a material point) the step is halved up to ``max_line_search`` times. A step that
-still fails, a non-finite residual, or no convergence in ``max_iterations`` makes the load step
-fail; :func:`load_steps` then halves the load increment (cutback) and retries, up to
-``max_cutbacks`` times, and finally raises :class:`~pixmuscle.errors.SolverError` naming the step,
-α and the last residual. It gives up before the last cutback when a smaller increment cannot help
+Start of a load increment: the state is the last converged d with the new load factor and α,
+and the first update is computed with the tangent of the last converged state, which is
+positive definite at a stable equilibrium (a tangent predictor). The tangent at the start state
+itself is not: the new active fibre stress makes it indefinite along the soft lateral mode of a
+clamped muscle (geometric stiffness of the deviatoric active stress), its update overshoots
+that mode many times, and Newton then wandered for ~10 iterations at a relative residual ≈ 1
+(docs/performance.md, "Newton convergence"). Any later update that is no descent direction of
+Π (Δd·r ≤ 0), or whose line search fails, is recomputed with the same converged tangent.
+
+Line search (:func:`line_search`): an energy line search — the step factor s is the root of
+Π′(s) = −Δd·r(d + sΔd), bracketed and interpolated by regula falsi, unless the full step already
+lowers ‖r‖. A step that still fails, a non-finite residual, or no convergence in
+``max_iterations`` makes the load step fail; :func:`load_steps` then halves the load increment
+(cutback) and retries, up to ``max_cutbacks`` times, and finally raises
+:class:`~pixmuscle.errors.SolverError` naming the step, α and the last residual. It gives up before the last cutback when a smaller increment cannot help
 (see :func:`_cutback_cannot_help`: a failed linear solve or a non-finite residual at the start of
 an increment, or two successive attempts that stagnated).
 """
@@ -100,7 +109,86 @@ def forcing_term(rn: float, rn_prev: float | None, target: float, eta_max: float
     return float(min(eta_max, max(0.9 * (rn / rn_prev) ** 2, 0.1 * target / rn)))
 
 
-def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0) -> NewtonResult:
+def line_search(system, state, dd: np.ndarray, cfg: NewtonConfig):
+    """Step length s along the Newton update ``dd``: an energy line search (regula falsi on Π′).
+
+    Along d(s) = d + s Δd the slope of the total potential is Π′(s) = −Δd·r(s) (r = −∂Π/∂d), so
+    g(s) = Δd·r(s) (N·cm) is positive while Π decreases and its root is the minimum of Π on the
+    line (Matthies & Strang 1979; Crisfield 1991, §9.3). The full step is accepted when it lowers
+    ‖r‖ or leaves |g(1)| ≤ ½ g(0) (near the minimum of Π) or g(1) > 0 (Π still decreasing at the
+    full step); otherwise the minimum is bracketed in [s_lo, s_hi] with g(s_lo) > 0 > g(s_hi) and
+    the next s interpolates g linearly (Illinois regula falsi, kept 10 % inside the bracket) —
+    not halving, which on a soft tangent (the active fibre at λ* ≈ 1 has zero stiffness, f_active′(1)
+    = 0) needs many evaluations to come back from a step that overshoots 3–10× and then keeps
+    far too short a step. A trial that inverts a material point or gives a non-finite residual
+    is an upper bound s_hi of unknown slope (bisection). When Δd is not a descent direction of
+    Π (g(0) ≤ 0: the tangent is indefinite along Δd) the search halves s until ‖r‖ decreases.
+
+    Parameters
+    ----------
+    system, state
+        See :func:`newton`.
+    dd : (N, 3) float
+        Newton update, cm.
+    cfg : NewtonConfig
+        ``line_search`` (off: the full step), ``max_line_search`` (evaluations after the first).
+
+    Returns
+    -------
+    trial : State or None
+        The accepted state (``None``: no acceptable step).
+    s : float
+        Its step factor.
+    why : str
+        Reason of the last rejection ("" when accepted at once).
+    """
+    t, alpha = state.t, state.alpha
+    rn = _norm(state.r)
+    g0 = float(np.vdot(dd, state.r))
+    descent = g0 > 0.0
+    lo, g_lo, hi, g_hi = 0.0, g0, None, None  # bracket of the root of g; g_hi None: slope unknown
+    side = 0  # Illinois: which end was kept last (halve its g when kept twice)
+    s, why = 1.0, ""
+    best = None
+    for _ in range(cfg.max_line_search + 1 if cfg.line_search else 1):
+        try:
+            cand = system.evaluate(state.d + s * dd, t, alpha)
+            rc = _norm(cand.r)
+            if not np.isfinite(rc):
+                raise SolverError("non-finite residual")
+        except SolverError as exc:
+            why = str(exc)
+            hi, g_hi = s, None
+            s = lo + 0.5 * (hi - lo)
+            continue
+        if not cfg.line_search:
+            return cand, s, ""
+        g = float(np.vdot(dd, cand.r))
+        if rc <= rn or (descent and (abs(g) <= 0.5 * g0 or (g > 0.0 and hi is None))):
+            return cand, s, ""
+        why = f"no decrease of residual or energy (residual {rc:.3g} > {rn:.3g})"
+        if not descent:
+            s *= 0.5
+            continue
+        if g > 0.0:
+            lo, g_lo, best = s, g, cand
+            if side == -1 and g_hi is not None:
+                g_hi *= 0.5
+            side = -1
+        else:
+            hi, g_hi = s, g
+            if side == 1:
+                g_lo *= 0.5
+            side = 1
+        w = hi - lo
+        s = lo + w * (g_lo / (g_lo - g_hi) if g_hi is not None else 0.5)
+        s = min(max(s, lo + 0.1 * w), hi - 0.1 * w)
+    if best is not None:  # Π decreased monotonically up to s_lo
+        return best, lo, ""
+    return None, s, why
+
+
+def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0, first_tangent=None) -> NewtonResult:
     """Newton iterations from ``state`` at fixed load factor and activation.
 
     Parameters
@@ -113,6 +201,9 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0) -> New
     linsolver : LinearSolver
     step : int
         Load-step number, for the log.
+    first_tangent : State, optional
+        Last converged state: its tangent gives the first update, and any update that is no
+        descent direction of Π (see the module docstring). ``None``: always the current tangent.
 
     Returns
     -------
@@ -124,7 +215,7 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0) -> New
     en_last = np.inf
     rn_prev = None
     rel = np.inf
-    t, alpha = state.t, state.alpha
+    t = state.t
     for it in range(cfg.max_iterations + 1):
         rn = _norm(state.r)
         scale = state.force_scale
@@ -144,38 +235,24 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0) -> New
             break
         eta = forcing_term(rn, rn_prev, cfg.residual_tol * scale + system.atol, cfg.forcing_max)
         rn_prev = rn
-        try:
-            linsolver.prepare(system, state)
-            dd = linsolver.solve(state.r.reshape(-1), rtol=eta).reshape(state.d.shape)
-        except SolverError as exc:
-            rows.append(NewtonRow(step, t, it, rn, rel, 0.0, 0.0))
-            return NewtonResult(state, False, it, rows, rel, f"linear solver: {exc}")
+        # the first update of an increment, and any update that is no descent direction of Π, are
+        # computed with the (positive definite) tangent of the last converged state
+        tangents = [state] if first_tangent is None else [first_tangent] if it == 0 else [state, first_tangent]
+        trial = None
+        for k, tangent_state in enumerate(tangents):
+            try:
+                linsolver.prepare(system, tangent_state)
+                dd = linsolver.solve(state.r.reshape(-1), rtol=eta).reshape(state.d.shape)
+            except SolverError as exc:
+                rows.append(NewtonRow(step, t, it, rn, rel, 0.0, 0.0))
+                return NewtonResult(state, False, it, rows, rel, f"linear solver: {exc}")
+            if k + 1 < len(tangents) and float(np.vdot(dd, state.r)) <= 0.0:
+                continue
+            trial, s, why = line_search(system, state, dd, cfg)
+            if trial is not None:
+                break
         en = abs(float(np.vdot(dd, state.r)))
         E_ref = max(E_ref, en)
-        s, trial, why = 1.0, None, ""
-        pi0 = None
-        for _ in range(cfg.max_line_search + 1 if cfg.line_search else 1):
-            try:
-                cand = system.evaluate(state.d + s * dd, t, alpha)
-            except SolverError as exc:
-                why = str(exc)
-                s *= 0.5
-                continue
-            rc = _norm(cand.r)
-            if not np.isfinite(rc):
-                why = "non-finite residual"
-                s *= 0.5
-                continue
-            if not cfg.line_search or rc <= rn:
-                trial = cand
-                break
-            if pi0 is None:
-                pi0 = system.energy(state)
-            if system.energy(cand) < pi0:
-                trial = cand
-                break
-            why = f"no decrease of residual or energy (residual {rc:.3g} > {rn:.3g})"
-            s *= 0.5
         if trial is None:
             rows.append(NewtonRow(step, t, it, rn, rel, en, 0.0))
             return NewtonResult(state, False, it, rows, rel, f"line search failed: {why}")
@@ -184,17 +261,6 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0) -> New
         state = trial
     return NewtonResult(state, False, cfg.max_iterations, rows, rel,
                         f"no convergence in {cfg.max_iterations} iterations")
-
-
-def _predict(system, d, last, dt, t, alpha):
-    """Start state of a load increment: linear extrapolation of the last converged increment
-    (scaled to ``dt``), or ``d`` itself when there is none or the extrapolation inverts a point."""
-    if last is not None and dt > 0:
-        try:
-            return system.evaluate(d + (dt / last[1]) * last[0], t, alpha)
-        except SolverError:
-            pass
-    return system.evaluate(d, t, alpha)
 
 
 def _stagnated(res: NewtonResult, cfg: NewtonConfig) -> bool:
@@ -265,7 +331,7 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
     d = np.zeros((system.n_nodes, 3)) if d0 is None else np.asarray(d0, float).copy()
     records: list[StepRecord] = []
     t_done = 0.0
-    last = None  # (increment of d, increment of t) of the last converged increment, for the predictor
+    conv = None  # last converged state: its tangent starts every increment
     for k in range(n_steps + 1):
         t_target = k / n_steps
         dt = t_target - t_done
@@ -278,16 +344,15 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
             first = False
             t_try = min(t_done + dt, t_target) if dt > 0 else t_target
             try:
-                state = _predict(system, d, last, t_try - t_done, t_try, alpha_of(t_try))
-                res = newton(system, state, cfg, linsolver, step=k)
+                state = system.evaluate(d, t_try, alpha_of(t_try))
+                res = newton(system, state, cfg, linsolver, step=k, first_tangent=conv)
             except SolverError as exc:  # inverted already at the start of the increment
                 res = NewtonResult(None, False, 0, [], np.inf, str(exc))
             rows.extend(res.rows)
             iters += res.iterations
             if res.converged:
-                if t_try > t_done:
-                    last = (res.state.d - d, t_try - t_done)
                 d = res.state.d
+                conv = res.state
                 t_done = t_try
                 state = res.state
                 continue
