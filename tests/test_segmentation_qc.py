@@ -113,6 +113,7 @@ def test_old_coarse_demo_phantom_loses_its_bones_and_the_stage_says_so(tmp_path)
     """The 0.312 cm leg phantom that the demo used before: the level sets lose the bones in some slices
     (bone Dice 0.38); the segment stage now warns, and the warning is in segmentation.h5."""
     from pixmuscle.config import parse_section
+    from pixmuscle.io.lineage import stage_record
     from pixmuscle.segmentation.config import SegmentConfig
     from pixmuscle.segmentation.scoring import dice
     from pixmuscle.stages.segment import run_segment
@@ -137,3 +138,5 @@ def test_old_coarse_demo_phantom_loses_its_bones_and_the_stage_says_so(tmp_path)
     with h5py.File(out) as f:
         warnings = json.loads(f.attrs["warnings"])
     assert any(w.startswith("segmentation QC: bone") and "missing in slice(s)" in w for w in warnings), warnings
+    # what every downstream stage file (model, results) carries into the report
+    assert any(w.startswith("segmentation QC: bone") for w in stage_record(out)[-1]["warnings"])
