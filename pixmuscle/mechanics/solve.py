@@ -491,7 +491,10 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
                   rec.step, cfg.steps, steps[-1]["alpha"], rec.t, rec.iterations, rec.cutbacks, last_rel)
         if progress is not None:
             last = rec.rows[-1].relative_residual if rec.rows else 0.0
-            progress.advance(1, alpha=float(steps[-1]["alpha"]), residual=float(last))
+            if activation is None and cfg.alpha_from == cfg.alpha_to:  # displacement-driven: show the load factor
+                progress.advance(1, load=float(rec.t), residual=float(last))
+            else:
+                progress.advance(1, alpha=float(steps[-1]["alpha"]), residual=float(last))
 
     status = "complete"
     error = None
