@@ -196,12 +196,16 @@ class LinearSolverConfig:
     direct_engine: Literal["auto", "pardiso", "superlu"] = field(default="auto", metadata={"doc": "direct: MKL PARDISO (optional package mkl, pip install 'pixmuscle[fast]') or SciPy's SuperLU; auto takes PARDISO when installed"})
     reuse_factorization: bool = field(default=True, metadata={"doc": "direct: keep the factors of an earlier tangent and use them to precondition CG on the exact (matrix-free) tangent; refactorise when that gets slow (> 20 CG iterations, or more than a quarter of the time of assembly + factorisation)"})
     maxiter: int = field(default=2000, metadata={"range": (1, None)})
+    petsc_options: dict[str, str | float | bool] = field(default_factory=dict, metadata={"doc": "petsc: options for PETSc's options database, names without the dash (default ksp_type: cg, pc_type: gamg; e.g. {ksp_type: minres, pc_type: hypre, ksp_monitor: true})"})
 
     def __post_init__(self):
         from .linsolve import BACKENDS
+        from .linsolve import petsc
 
         if self.backend != "auto" and self.backend not in BACKENDS:
             raise ValueError(f"backend: expected auto or one of {', '.join(sorted(BACKENDS))}, got {self.backend!r}")
+        if self.backend == "petsc" and not petsc.available():
+            raise ValueError(f"backend: petsc: {petsc.INSTALL_HINT}")
 
 
 def _default_bcs() -> list:

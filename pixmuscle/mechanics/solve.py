@@ -455,7 +455,7 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
     linsolver = make_solver(cfg.solver.backend, model.X, auto_direct_max_dofs=cfg.solver.auto_direct_max_dofs,
                             rtol=cfg.solver.rtol, maxiter=cfg.solver.maxiter, reuse=cfg.solver.reuse_factorization,
                             ijk=model.ijk, width=2 * np.floor(np.asarray(cfg.support.a_over_h) + 0.5).astype(int),
-                            direct_engine=cfg.solver.direct_engine)
+                            direct_engine=cfg.solver.direct_engine, petsc_options=cfg.solver.petsc_options)
     info["linear_solver"] = linsolver.name
     if "engine" in linsolver.info:
         info["linear_engine"] = linsolver.info["engine"]

@@ -24,6 +24,11 @@ anywhere else. Backends:
     rebuilt once the iterations lost to its staleness have cost as much as a rebuild
     (:class:`KrylovAMGSolver`). Newton passes an
     adaptive tolerance (inexact Newton). Memory grows linearly with the model.
+``petsc``
+    PETSc (optional petsc4py) on one or several MPI ranks (``mpiexec -n P pixmuscle solve …``):
+    each rank assembles the tangent rows of a slab of slices into a distributed AIJ matrix,
+    solved by KSP CG + GAMG with the rigid-body near-null space by default;
+    ``solve.solver.petsc_options`` go to PETSc's options database (:mod:`.petsc`, docs/petsc.md).
 ``auto``
     ``direct`` up to ``auto_direct_max_dofs`` unknowns (15k nodes with PARDISO, 4k with
     SuperLU), ``cg_amg`` above.
@@ -36,9 +41,10 @@ import numpy as np
 from .base import BACKENDS, LinearSolver, pcg, register, rigid_body_modes
 from .cg_amg import KrylovAMGSolver, voxel_aggregates
 from .direct import DirectSolver, nested_dissection
+from .petsc import PETScSolver
 
 __all__ = ["LinearSolver", "DirectSolver", "KrylovAMGSolver", "BACKENDS", "register", "make_solver", "pcg",
-           "rigid_body_modes", "voxel_aggregates", "nested_dissection", "AUTO_DIRECT_MAX_DOFS"]
+           "rigid_body_modes", "voxel_aggregates", "nested_dissection", "AUTO_DIRECT_MAX_DOFS", "PETScSolver"]
 
 # direct up to here: PARDISO + reuse is faster than cg_amg at 11.5k nodes (351 s against 626 s for the
 # benchmark sweep) and slower at 21k (2,244 s against ~1,200 s extrapolated), docs/performance.md

@@ -1,0 +1,177 @@
+"""Backend ``petsc``: the Newton systems solved by PETSc (petsc4py), on one or several MPI ranks.
+
+The nodes are cut into slabs of voxel slices (:func:`slab_partition`), one slab per rank; each
+rank assembles the tangent rows of its own nodes (:class:`.rows.RowAssembler`: its nodes plus a
+halo of one support radius) into a distributed PETSc AIJ matrix (block size 3), so no rank holds
+the whole tangent. The system is solved with a PETSc Krylov method, by default conjugate
+gradients preconditioned by PETSc's smoothed-aggregation multigrid (GAMG) with the six rigid-body
+modes of the node coordinates as near-null space. ``solve.solver.petsc_options`` go to PETSc's
+options database (``{ksp_type: minres, pc_type: hypre}`` etc.; any ``-ksp_*``/``-pc_*`` option
+without the dash). Right-hand sides and solutions are full vectors on every rank (the Newton
+iteration, the material evaluation and the model arrays are replicated on every rank).
+
+petsc4py is optional: ``make venv`` installs it on Debian/Ubuntu as root (README, docs/petsc.md).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ...errors import SolverError
+from .base import LinearSolver, register
+
+#: what to do when petsc4py is missing (config error of ``solve.solver.backend: petsc``)
+INSTALL_HINT = ("petsc4py is not installed: on Debian/Ubuntu run `make venv` as root (it installs libpetsc-real-dev "
+                "and builds petsc4py against it), or by hand: apt-get install libpetsc-real-dev libopenmpi-dev "
+                "openmpi-bin; PETSC_DIR=/usr/lib/petscdir/petsc3.18/x86_64-linux-gnu-real pip install "
+                "--no-build-isolation 'cython<3' 'petsc4py==3.18.5' (docs/petsc.md)")
+
+#: PETSc options used unless ``petsc_options`` sets them
+DEFAULT_OPTIONS = {"ksp_type": "cg", "pc_type": "gamg", "pc_gamg_type": "agg", "pc_gamg_agg_nsmooths": 1,
+                   "pc_gamg_threshold": 0.01, "mg_levels_ksp_type": "chebyshev", "mg_levels_pc_type": "jacobi"}
+
+_PREFIX = "pixmuscle_"
+
+
+def available() -> bool:
+    """True when petsc4py imports."""
+    try:
+        import petsc4py  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def slab_partition(ijk: np.ndarray, parts: int) -> tuple[np.ndarray, np.ndarray]:
+    """Cut the nodes into ``parts`` slabs of whole voxel slices with about equal node counts.
+
+    Parameters
+    ----------
+    ijk : (N, 3) int
+        Voxel indices; the slices are the third index.
+    parts : int
+
+    Returns
+    -------
+    order : (N,) int
+        Nodes by slice (stable): slab r is ``order[bounds[r]:bounds[r + 1]]``.
+    bounds : (parts + 1,) int
+    """
+    k = np.asarray(ijk)[:, 2]
+    order = np.argsort(k, kind="stable")
+    ks = k[order]
+    n = order.size
+    cuts = np.searchsorted(ks, ks[np.minimum((np.arange(1, parts) * n) // parts, n - 1)], side="left")
+    bounds = np.concatenate([[0], cuts, [n]]).astype(np.int64)
+    return order, np.maximum.accumulate(bounds)
+
+
+class PETScSolver(LinearSolver):
+    """PETSc KSP on the distributed assembled tangent (see the module docstring).
+
+    Parameters
+    ----------
+    X : (N, 3) float
+        Node coordinates, cm (rigid-body near-null space).
+    ijk : (N, 3) int
+        Voxel indices (slab partition).
+    rtol : float
+        Relative residual when the caller gives none.
+    maxiter : int
+    options : dict, optional
+        PETSc options (names without the leading dash), over :data:`DEFAULT_OPTIONS`.
+    """
+
+    name = "petsc"
+
+    def __init__(self, X, ijk, rtol: float = 1e-10, maxiter: int = 2000, options: dict | None = None):
+        super().__init__()
+        from petsc4py import PETSc
+
+        self.PETSc = PETSc
+        self.comm = PETSc.COMM_WORLD
+        self.rank, self.size = self.comm.getRank(), self.comm.getSize()
+        self.X = np.asarray(X, float)
+        self.order, self.bounds = slab_partition(ijk, self.size)
+        self.owned = self.order[self.bounds[self.rank]:self.bounds[self.rank + 1]]
+        dof = (3 * self.order[:, None] + np.arange(3)).ravel()
+        self.dof = dof  # PETSc global index p ↔ model dof dof[p]
+        self.pos = np.empty_like(dof)
+        self.pos[dof] = np.arange(dof.size)
+        self.lo, self.hi = 3 * int(self.bounds[self.rank]), 3 * int(self.bounds[self.rank + 1])
+        self.rtol, self.maxiter = rtol, maxiter
+        opts = PETSc.Options()
+        for key, value in {**DEFAULT_OPTIONS, **(options or {})}.items():
+            key = str(key).lstrip("-")
+            opts.setValue(_PREFIX + key, "" if value is None else str(value).lower() if isinstance(value, bool) else str(value))
+        self.options = {**DEFAULT_OPTIONS, **(options or {})}
+        self._rows = None
+        self._ksp = None
+        self.info.update(krylov_iterations=0, preconditioner_builds=0, ranks=self.size,
+                         owned_nodes=int(self.owned.size))
+
+    def prepare(self, system, state):
+        PETSc = self.PETSc
+        t0 = time.perf_counter()
+        if self._rows is None:
+            from .rows import RowAssembler
+
+            self._rows = RowAssembler(system, self.owned)
+            self.info["halo_cells"] = int(self._rows.cells.size - self.owned.size)
+        K = self._rows.rows(state)
+        K.indices = self.pos[K.indices].astype(PETSc.IntType)
+        K.has_sorted_indices = False
+        K.sort_indices()
+        n_loc, n = self.hi - self.lo, self.dof.size
+        A = PETSc.Mat().createAIJ(size=((n_loc, n), (n_loc, n)), bsize=3, comm=self.comm,
+                                  csr=(K.indptr.astype(PETSc.IntType), K.indices, K.data))
+        A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        A.assemble()
+        coords = PETSc.Vec().createMPI((n_loc, n), bsize=3, comm=self.comm)
+        coords.setArray(self.X[self.owned].ravel())
+        A.setNearNullSpace(PETSc.NullSpace().createRigidBody(coords))
+        if self._ksp is None:
+            self._ksp = PETSc.KSP().create(comm=self.comm)
+            self._ksp.setOptionsPrefix(_PREFIX)
+            self._ksp.setOperators(A)
+            self._ksp.setFromOptions()
+            self._b, self._x = A.createVecs()
+            self._all, self._xall = PETSc.Scatter.toAll(self._x)
+        else:
+            self._ksp.setOperators(A)
+        self._A = A
+        self.info["preconditioner_builds"] += 1
+        self.info["setup_s"] = time.perf_counter() - t0
+        self.info["nnz_local"] = int(K.nnz)
+
+    def solve(self, r, rtol=None):
+        t0 = time.perf_counter()
+        rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
+        b = np.asarray(r, float).ravel()[self.dof[self.lo:self.hi]]
+        self._b.setArray(b)
+        self._ksp.setTolerances(rtol=rtol, atol=0.0, max_it=self.maxiter)
+        self._ksp.solve(self._b, self._x)
+        its = int(self._ksp.getIterationNumber())
+        reason = int(self._ksp.getConvergedReason())
+        self._all.scatter(self._x, self._xall, addv=False, mode=self.PETSc.ScatterMode.FORWARD)
+        x = np.empty(self.dof.size)
+        x[self.dof] = self._xall.getArray()
+        self.info["iterations"] = its
+        self.info["krylov_iterations"] += its
+        self.info["solve_s"] = time.perf_counter() - t0
+        if reason < 0:
+            raise SolverError(f"petsc: KSP {self.options.get('ksp_type')} diverged (PETSc reason {reason}) after {its} "
+                              f"iterations (relative residual target {rtol:.1e}); try solver.petsc_options "
+                              "{ksp_type: minres} or {pc_type: hypre}, or check the boundary conditions")
+        return x.reshape(np.shape(r))
+
+
+@register("petsc")
+def _make_petsc(X, *, ijk=None, rtol: float = 1e-10, maxiter: int = 2000, petsc_options=None, **_) -> PETScSolver:
+    if ijk is None:
+        raise ValueError("petsc needs the voxel indices ijk of the nodes")
+    if not available():
+        raise ValueError(INSTALL_HINT)
+    return PETScSolver(X, ijk, rtol=rtol, maxiter=maxiter, options=dict(petsc_options or {}))

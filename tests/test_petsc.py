@@ -1,0 +1,140 @@
+"""PETSc/MPI backend: the rows one rank assembles, the slab partition, and real ``mpiexec -n 2`` runs
+of ``pixmuscle solve`` against the serial default solver (skipped, with the reason, without petsc4py
+or mpiexec)."""
+
+import dataclasses
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from pixmuscle.config import parse_section
+from pixmuscle.io.model import save_model
+from pixmuscle.io.results import load_results
+from pixmuscle.mechanics.config import SolveConfig
+from pixmuscle.mechanics.linsolve import petsc
+from pixmuscle.mechanics.linsolve.rows import RowAssembler
+from pixmuscle.mechanics.solve import build_system, solve
+from pixmuscle.verify.mechanics import mask_model
+
+BCS = [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]}]
+SWEEP = {"steps": 3, "activation": {"from": 0.0, "to": 0.95}, "boundary_conditions": BCS}
+
+
+def _body():
+    """Irregular muscle/connective-tissue body: oblique-fibre muscle core, connective-tissue rim,
+    a notch and a one-voxel strand (enlarged RK supports), 8 slices."""
+    mask = np.ones((7, 6, 8), bool)
+    mask[5:, 4:, :] = False
+    mask[0, 0, 3:] = False
+    mask = np.pad(mask, ((0, 2), (0, 0), (0, 0)))
+    mask[7:9, 2, :] = True
+    model = mask_model(mask, (0.15, 0.15, 0.4), tissue=2)
+    tissue = np.asarray(model.tissue).copy()
+    tissue[np.all((model.ijk >= [1, 1, 0]) & (model.ijk <= [5, 4, 7]), axis=1)] = 1
+    fiber = np.tile(np.array([np.sin(0.4), 0.0, np.cos(0.4)]), (model.n_nodes, 1))
+    return dataclasses.replace(model, tissue=tissue, fiber=fiber)
+
+
+def test_slab_partition_cuts_whole_slices_into_balanced_parts():
+    model = _body()
+    order, bounds = petsc.slab_partition(model.ijk, 3)
+    assert np.array_equal(np.sort(order), np.arange(model.n_nodes))
+    k = model.ijk[order, 2]
+    for r in range(2):  # no slice is split between two ranks
+        assert k[bounds[r + 1] - 1] < k[bounds[r + 1]]
+    sizes = np.diff(bounds)
+    assert sizes.min() > 0.5 * model.n_nodes / 3
+
+
+@pytest.mark.parametrize("volumetric", ["projected", "nodal"])
+def test_owned_rows_equal_the_rows_of_the_whole_tangent(volumetric):
+    """Rows assembled from the cells around one slab (plus halo) are the rows of the full assembly
+    (penalty, NSNI stabilisation and the projected patch terms included)."""
+    model = _body()
+    system = build_system(model, parse_section(SolveConfig, dict(SWEEP, volumetric={"method": volumetric}), "solve"))[0]
+    rng = np.random.default_rng(0)
+    state = system.evaluate(0.01 * rng.standard_normal((model.n_nodes, 3)), 0.5, 0.6)
+    K = system.stiffness(state).tocsr()
+    order, bounds = petsc.slab_partition(model.ijk, 2)
+    for r in range(2):
+        owned = order[bounds[r]:bounds[r + 1]]
+        rows = RowAssembler(system, owned)
+        assert rows.cells.size < model.n_nodes  # a halo, not the whole body
+        dofs = (3 * owned[:, None] + np.arange(3)).ravel()
+        diff = rows.rows(state) - K[dofs]
+        assert abs(diff).max() < 1e-12 * abs(K).max()
+
+
+def _config(tmp_path: Path, solver: dict) -> Path:
+    path = tmp_path / f"{solver['backend']}.yaml"
+    path.write_text(yaml.safe_dump({"solve": dict(SWEEP, solver=solver)}))
+    return path
+
+
+def _mpiexec() -> list[str]:
+    exe = shutil.which("mpiexec")
+    if not petsc.available():
+        pytest.skip(f"petsc4py not importable ({petsc.INSTALL_HINT})")
+    if exe is None:
+        pytest.skip("mpiexec not found (apt-get install openmpi-bin)")
+    return [exe, "--oversubscribe"]
+
+
+def _env():
+    return dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMPI_MCA_rmaps_base_oversubscribe="1")
+
+
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("petsc")
+    model = _body()
+    save_model(tmp / "model.h5", model)
+    ref = solve(model, parse_section(SolveConfig, SWEEP, "solve"))
+    assert ref.status == "complete" and abs(ref.force("z_max")[-1]) > 1.0
+    return tmp, ref
+
+
+@pytest.mark.parametrize("ranks", [1, 2])
+def test_mpiexec_solve_matches_the_serial_default_solver(serial, ranks):
+    """``mpiexec -n P pixmuscle solve`` (real processes): the forces of the 3-step sweep equal the
+    serial default solver to 1e-6; one results file, written by rank 0."""
+    launcher = _mpiexec()
+    tmp, ref = serial
+    cfg = _config(tmp, {"backend": "petsc", "rtol": 1e-12})
+    out = tmp / f"results_{ranks}.h5"
+    cmd = launcher + ["-n", str(ranks), sys.executable, "-m", "pixmuscle.cli", "solve", str(tmp / "model.h5"),
+                      "--config", str(cfg), "-o", str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = load_results(out)
+    assert res.status == "complete"
+    assert res.info["linear_solver"] == "petsc" and res.info["krylov_iterations"] > 0
+    f, f_ref = res.force("z_max"), ref.force("z_max")
+    assert np.allclose(f, f_ref, rtol=1e-6, atol=1e-9 * abs(f_ref).max())
+    assert sorted(p.name for p in tmp.iterdir() if p.name.startswith(f"results_{ranks}")) == [out.name]
+
+
+def test_mpiexec_failure_on_one_rank_ends_all_ranks(serial, tmp_path):
+    """A bad PETSc option set on every rank: all ranks end with the message, nothing is written."""
+    launcher = _mpiexec()
+    tmp, _ = serial
+    cfg = _config(tmp_path, {"backend": "petsc", "petsc_options": {"ksp_type": "no_such_krylov"}})
+    out = tmp_path / "results.h5"
+    cmd = launcher + ["-n", "2", sys.executable, "-m", "pixmuscle.cli", "solve", str(tmp / "model.h5"),
+                      "--config", str(cfg), "-o", str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=300)
+    assert proc.returncode != 0
+    assert "no_such_krylov" in proc.stderr
+    assert not out.exists()
+
+
+def test_petsc_backend_without_petsc4py_is_a_config_error_with_install_hint(monkeypatch):
+    monkeypatch.setattr(petsc, "available", lambda: False)
+    with pytest.raises(Exception, match=r"solve\.solver\.backend.*petsc4py.*make venv"):
+        parse_section(SolveConfig, dict(SWEEP, solver={"backend": "petsc"}), "solve")
