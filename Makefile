@@ -6,11 +6,13 @@ STAMP  := $(VENV)/.pixmuscle-installed
 
 .PHONY: venv demo test bench bench-scale lint clean
 
-# (re)create the virtual environment and install pixmuscle with its extras when pyproject changes
+# (re)create the virtual environment and install pixmuscle with its extras when pyproject changes;
+# .ci/install-petsc adds the optional PETSc/MPI backend where it can (Debian/Ubuntu as root) and says why not elsewhere
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e ".[test,dev,fast,dwi]"
+	.ci/install-petsc $(BIN)/python
 	touch $(STAMP)
 
 venv: $(STAMP)

@@ -182,10 +182,18 @@ def solve(
     config: Path = typer.Option(..., "--config", "-c", help="YAML config with a `solve` section."),
     output: Path = typer.Option(Path("results.h5"), "--output", "-o", help="Output results HDF5."),
 ) -> None:
-    """Finite-strain SCNI–RKPM solve: ramp activation, record reaction forces."""
+    """Finite-strain SCNI–RKPM solve: ramp activation, record reaction forces.
+
+    Under ``mpiexec -n P`` (backend petsc) every rank runs this; rank 0 logs and writes the results.
+    """
+    from . import parallel
+
     mod = _load("pixmuscle.stages.solve")
-    mod.run_solve(model, _section(config, "solve"), output, synthetic=_synthetic(config))
-    _out(output)
+    with parallel.abort_on_failure():
+        parallel.quiet_other_ranks()
+        mod.run_solve(model, _section(config, "solve"), output, synthetic=_synthetic(config))
+    if parallel.rank() == 0:
+        _out(output)
 
 
 @app.command()

@@ -26,17 +26,17 @@ BCS = [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x
 SWEEP = {"steps": 3, "activation": {"from": 0.0, "to": 0.95}, "boundary_conditions": BCS}
 
 
-def _body():
+def _body(slices: int = 14):
     """Irregular muscle/connective-tissue body: oblique-fibre muscle core, connective-tissue rim,
-    a notch and a one-voxel strand (enlarged RK supports), 8 slices."""
-    mask = np.ones((7, 6, 8), bool)
+    a notch and a one-voxel strand (enlarged RK supports)."""
+    mask = np.ones((7, 6, slices), bool)
     mask[5:, 4:, :] = False
     mask[0, 0, 3:] = False
     mask = np.pad(mask, ((0, 2), (0, 0), (0, 0)))
     mask[7:9, 2, :] = True
     model = mask_model(mask, (0.15, 0.15, 0.4), tissue=2)
     tissue = np.asarray(model.tissue).copy()
-    tissue[np.all((model.ijk >= [1, 1, 0]) & (model.ijk <= [5, 4, 7]), axis=1)] = 1
+    tissue[np.all((model.ijk >= [1, 1, 0]) & (model.ijk <= [5, 4, slices - 1]), axis=1)] = 1
     fiber = np.tile(np.array([np.sin(0.4), 0.0, np.cos(0.4)]), (model.n_nodes, 1))
     return dataclasses.replace(model, tissue=tissue, fiber=fiber)
 
@@ -93,7 +93,7 @@ def _env():
 @pytest.fixture(scope="module")
 def serial(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("petsc")
-    model = _body()
+    model = _body(6)
     save_model(tmp / "model.h5", model)
     ref = solve(model, parse_section(SolveConfig, SWEEP, "solve"))
     assert ref.status == "complete" and abs(ref.force("z_max")[-1]) > 1.0
@@ -136,5 +136,5 @@ def test_mpiexec_failure_on_one_rank_ends_all_ranks(serial, tmp_path):
 
 def test_petsc_backend_without_petsc4py_is_a_config_error_with_install_hint(monkeypatch):
     monkeypatch.setattr(petsc, "available", lambda: False)
-    with pytest.raises(Exception, match=r"solve\.solver\.backend.*petsc4py.*make venv"):
+    with pytest.raises(Exception, match=r"solve\.solver: backend: petsc.*petsc4py.*make venv"):
         parse_section(SolveConfig, dict(SWEEP, solver={"backend": "petsc"}), "solve")

@@ -199,8 +199,7 @@ class LinearSolverConfig:
     petsc_options: dict[str, str | float | bool] = field(default_factory=dict, metadata={"doc": "petsc: options for PETSc's options database, names without the dash (default ksp_type: cg, pc_type: gamg; e.g. {ksp_type: minres, pc_type: hypre, ksp_monitor: true})"})
 
     def __post_init__(self):
-        from .linsolve import BACKENDS
-        from .linsolve import petsc
+        from .linsolve import BACKENDS, petsc
 
         if self.backend != "auto" and self.backend not in BACKENDS:
             raise ValueError(f"backend: expected auto or one of {', '.join(sorted(BACKENDS))}, got {self.backend!r}")

@@ -7,6 +7,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from .. import parallel
 from ..config import parse_section
 from ..errors import InputError, SolverError
 from ..imaging.nifti import load_volume
@@ -104,6 +105,9 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
                          ", ".join(f"{k} {a:.3g} → {b:.3g}" for k, (a, b) in falling.items()))
         _LOG.info("solve: %d nodes, %d load steps, activation %s", model.n_nodes, cfg.steps, _describe(cfg, ramp, model))
         inputs = [Path(model_path)] + ([cfg.activation["image"]] if cfg.activation.get("image") is not None else [])
+        root = parallel.rank() == 0  # under mpiexec only rank 0 shows progress and writes the results
+        if not root:
+            progress = False
         try:
             if progress is None:
                 with _progress(cfg.steps + 1, "load step") as bar, newton_feed(bar):
@@ -112,12 +116,14 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
                 results = solve(model, cfg, progress=progress or None, activation=ramp)
         except SolverError as exc:
             partial = getattr(exc, "results", None)
-            if partial is not None:
+            if partial is not None and root:
                 partial.info["activation"] = _per_muscle(cfg, ramp, model)
                 save_results(out_path, partial, config=cfg, inputs=inputs,
                              attrs=stage_attrs("solve", inputs, warnings, synthetic=synthetic))
                 _LOG.error("solve failed; converged steps written to %s (status: %s)", out_path, partial.status)
             raise
+    if not root:
+        return Path(out_path)
     results.info["activation"] = _per_muscle(cfg, ramp, model)
     save_results(out_path, results, config=cfg, inputs=inputs,
                  attrs=stage_attrs("solve", inputs, warnings, synthetic=synthetic))

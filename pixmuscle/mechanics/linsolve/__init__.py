@@ -27,7 +27,7 @@ anywhere else. Backends:
 ``petsc``
     PETSc (optional petsc4py) on one or several MPI ranks (``mpiexec -n P pixmuscle solve …``):
     each rank assembles the tangent rows of a slab of slices into a distributed AIJ matrix,
-    solved by KSP CG + GAMG with the rigid-body near-null space by default;
+    solved by KSP GMRES + GAMG with the rigid-body near-null space by default;
     ``solve.solver.petsc_options`` go to PETSc's options database (:mod:`.petsc`, docs/petsc.md).
 ``auto``
     ``direct`` up to ``auto_direct_max_dofs`` unknowns (15k nodes with PARDISO, 4k with

@@ -3,8 +3,9 @@
 The nodes are cut into slabs of voxel slices (:func:`slab_partition`), one slab per rank; each
 rank assembles the tangent rows of its own nodes (:class:`.rows.RowAssembler`: its nodes plus a
 halo of one support radius) into a distributed PETSc AIJ matrix (block size 3), so no rank holds
-the whole tangent. The system is solved with a PETSc Krylov method, by default conjugate
-gradients preconditioned by PETSc's smoothed-aggregation multigrid (GAMG) with the six rigid-body
+the whole tangent. The system is solved with a PETSc Krylov method, by default
+GMRES (the tangent of activated muscle is symmetric but
+indefinite) preconditioned by PETSc's smoothed-aggregation multigrid (GAMG) with the six rigid-body
 modes of the node coordinates as near-null space. ``solve.solver.petsc_options`` go to PETSc's
 options database (``{ksp_type: minres, pc_type: hypre}`` etc.; any ``-ksp_*``/``-pc_*`` option
 without the dash). Right-hand sides and solutions are full vectors on every rank (the Newton
@@ -29,7 +30,8 @@ INSTALL_HINT = ("petsc4py is not installed: on Debian/Ubuntu run `make venv` as 
                 "--no-build-isolation 'cython<3' 'petsc4py==3.18.5' (docs/petsc.md)")
 
 #: PETSc options used unless ``petsc_options`` sets them
-DEFAULT_OPTIONS = {"ksp_type": "cg", "pc_type": "gamg", "pc_gamg_type": "agg", "pc_gamg_agg_nsmooths": 1,
+# GMRES: the tangent of activated muscle is indefinite (CG stops on negative curvature, PETSc reason -10)
+DEFAULT_OPTIONS = {"ksp_type": "gmres", "ksp_gmres_restart": 200, "pc_type": "gamg", "pc_gamg_type": "agg", "pc_gamg_agg_nsmooths": 1,
                    "pc_gamg_threshold": 0.01, "mg_levels_ksp_type": "chebyshev", "mg_levels_pc_type": "jacobi"}
 
 _PREFIX = "pixmuscle_"
@@ -164,7 +166,7 @@ class PETScSolver(LinearSolver):
         if reason < 0:
             raise SolverError(f"petsc: KSP {self.options.get('ksp_type')} diverged (PETSc reason {reason}) after {its} "
                               f"iterations (relative residual target {rtol:.1e}); try solver.petsc_options "
-                              "{ksp_type: minres} or {pc_type: hypre}, or check the boundary conditions")
+                              "{pc_type: hypre} or {ksp_gmres_restart: 500}, or check the boundary conditions")
         return x.reshape(np.shape(r))
 
 

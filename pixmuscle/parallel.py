@@ -1,0 +1,93 @@
+"""Where this process stands in an MPI launch (``mpiexec -n P pixmuscle solve …``).
+
+Without a launcher (no MPI environment variables) the process is rank 0 of 1 and nothing is
+imported. Under ``mpiexec`` the communicator is PETSc's (petsc4py initialises MPI), so mpi4py is
+not needed. Only rank 0 logs, shows progress and writes files; a failure on any rank ends all
+ranks (:func:`abort_on_failure`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import sys
+
+#: environment variables by which MPI launchers (OpenMPI, MPICH/Hydra, PMIx, Slurm) give the process count
+_SIZE_VARS = ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_SIZE", "MPI_LOCALNRANKS")
+
+
+def launched_size() -> int:
+    """Number of processes the launcher started (1 without a launcher)."""
+    for var in _SIZE_VARS:
+        value = os.environ.get(var)
+        if value and value.isdigit():
+            return int(value)
+    return 1
+
+
+def _comm():
+    if launched_size() <= 1:
+        return None
+    try:
+        from petsc4py import PETSc
+    except ImportError:
+        from .mechanics.linsolve.petsc import INSTALL_HINT
+
+        sys.stderr.write(f"error: started by mpiexec with {launched_size()} processes, but {INSTALL_HINT}\n")
+        sys.exit(2)
+    return PETSc.COMM_WORLD
+
+
+def rank() -> int:
+    """Rank of this process (0 without MPI)."""
+    comm = _comm()
+    return 0 if comm is None else comm.getRank()
+
+
+def size() -> int:
+    """Number of ranks (1 without MPI)."""
+    comm = _comm()
+    return 1 if comm is None else comm.getSize()
+
+
+def quiet_other_ranks() -> None:
+    """Silence logging on every rank but 0."""
+    if rank() != 0:
+        logging.disable(logging.CRITICAL)
+
+
+@contextlib.contextmanager
+def abort_on_failure():
+    """Under MPI, end every rank when this one fails: print the error (prefixed by the rank) and abort.
+
+    Without MPI, exceptions pass through unchanged (the CLI prints them as usual).
+    """
+    comm = _comm()
+    if comm is None or comm.getSize() <= 1:
+        yield
+        return
+    try:
+        yield
+    except BaseException as exc:
+        from .errors import PixmuscleError
+
+        code = getattr(exc, "exit_code", None)
+        if code == 0:
+            raise
+        where = "" if comm.getRank() == 0 else f" (rank {comm.getRank()} of {comm.getSize()})"
+        msg = str(exc) if isinstance(exc, PixmuscleError | ValueError) else f"{type(exc).__name__}: {exc}"
+        sys.stderr.write(f"error{where}: {msg}\n")
+        sys.stderr.flush()
+        _abort(comm, 2 if isinstance(exc, PixmuscleError) else 1)
+
+
+def _abort(comm, code: int) -> None:
+    """End every rank: MPI_Abort through mpi4py where installed, else leave with ``code`` (an MPI
+    process that ends without MPI_Finalize makes mpiexec terminate the others)."""
+    sys.stdout.flush()
+    try:
+        comm.tompi4py().Abort(code)
+    except Exception:  # mpi4py missing
+        pass
+    os._exit(code)
