@@ -263,6 +263,17 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0, first_
                         f"no convergence in {cfg.max_iterations} iterations")
 
 
+def _predict(system, d, last, dt, t, alpha):
+    """Start state of a load increment: linear extrapolation of the last converged increment
+    (scaled to ``dt``), or ``d`` itself when there is none or the extrapolation inverts a point."""
+    if last is not None and dt > 0:
+        try:
+            return system.evaluate(d + (dt / last[1]) * last[0], t, alpha)
+        except SolverError:
+            pass
+    return system.evaluate(d, t, alpha)
+
+
 def _stagnated(res: NewtonResult, cfg: NewtonConfig) -> bool:
     """A failed attempt that spent a third of ``max_iterations`` or more without halving its residual."""
     rel = [r.relative_residual for r in res.rows if np.isfinite(r.relative_residual)]
@@ -332,6 +343,12 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
     records: list[StepRecord] = []
     t_done = 0.0
     conv = None  # last converged state: its tangent starts every increment
+    # With a constant activation (displacement-driven loading) the tangent does not change with the load
+    # factor, so the start of an increment is the linear extrapolation of the last converged increment
+    # (the fastest start there); with a changing activation that extrapolation lands where the new active
+    # stress makes the tangent indefinite, and the converged state's tangent starts the increment instead.
+    passive_ramp = alpha_from == alpha_to
+    last = None  # (increment of d, increment of t) of the last converged increment
     for k in range(n_steps + 1):
         t_target = k / n_steps
         dt = t_target - t_done
@@ -344,13 +361,19 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
             first = False
             t_try = min(t_done + dt, t_target) if dt > 0 else t_target
             try:
-                state = system.evaluate(d, t_try, alpha_of(t_try))
-                res = newton(system, state, cfg, linsolver, step=k, first_tangent=conv)
+                if passive_ramp:
+                    state = _predict(system, d, last, t_try - t_done, t_try, alpha_of(t_try))
+                    res = newton(system, state, cfg, linsolver, step=k)
+                else:
+                    state = system.evaluate(d, t_try, alpha_of(t_try))
+                    res = newton(system, state, cfg, linsolver, step=k, first_tangent=conv)
             except SolverError as exc:  # inverted already at the start of the increment
                 res = NewtonResult(None, False, 0, [], np.inf, str(exc))
             rows.extend(res.rows)
             iters += res.iterations
             if res.converged:
+                if t_try > t_done:
+                    last = (res.state.d - d, t_try - t_done)
                 d = res.state.d
                 conv = res.state
                 t_done = t_try
