@@ -27,6 +27,9 @@ Node sets on the coarse grid:
   set lies in its closed coarse cell, i.e. within ``factor / 2`` fine voxels of it in-plane, on
   the same slice. For even factors a fine node half-way between two coarse nodes belongs to both
   cells. Thin regions therefore survive coarsening; a set that becomes empty is logged.
+* tissue sets (:data:`TISSUE_SETS`: the aponeurosis of ``segment.aponeurosis_mask``) describe
+  what a node *is*, like its tissue code: a coarse node is in the set when the fine node it keeps
+  is (the paper's "common points" rule), so their volumes converge with the resolution.
 
 Tissue, muscle id and fibre of a coarse node are those of the fine node it keeps.
 """
@@ -43,6 +46,10 @@ from .model import Model
 from .nodesets import GEOMETRIC_SETS, compute_node_sets, index_volume
 
 _LOG = logging.getLogger(__name__)
+
+
+#: node sets that describe tissue (carried by the kept node, not by coarse cell)
+TISSUE_SETS = ("aponeurosis",)
 
 
 def lattice_offsets(ijk, factor: int) -> tuple[int, int]:
@@ -170,7 +177,12 @@ def coarsen_model(model: Model, factor: int = 2, *, offset: tuple[int, int] | No
         bone_mask[bone_c[:, 0], bone_c[:, 1], bone_c[:, 2]] = True
     sets = compute_node_sets(ijk_c, shape_c, bone_mask)
 
-    by_cell = [k for k in model.sets if k not in GEOMETRIC_SETS]
+    by_cell = [k for k in model.sets if k not in GEOMETRIC_SETS and k not in TISSUE_SETS]
+    kept = np.cumsum(keep) - 1  # fine node index → coarse node index (where kept)
+    for name in TISSUE_SETS:
+        if name in model.sets:
+            fine = np.asarray(model.sets[name], dtype=np.int64)
+            sets[name] = kept[fine[keep[fine]]].astype(np.int64)
     if model.bone_ijk is None:
         _LOG.warning("coarsen: the model has no bone voxels (grid/bone_ijk); bone_surface and outer_surface are "
                      "carried over from the fine sets by coarse cell instead of recomputed")

@@ -18,17 +18,26 @@ from ..errors import InputError
 from . import html as H
 from .curves import plot_force_activation, write_csv
 
-#: (column header, function of a summary) of the quantities compared
+#: (column header, key of the summary's ``compared`` quantities) of the quantities compared
 QUANTITIES = (
-    ("muscle [cm^3]", lambda s: s["volumes_cm3"]["muscle"]),
-    ("IMAT [cm^3]", lambda s: s["volumes_cm3"]["imat"]),
-    ("IMCT [cm^3]", lambda s: s["volumes_cm3"]["imct"]),
-    ("subcutaneous fat [cm^3]", lambda s: s["volumes_cm3"]["subcutaneous_fat"]),
-    ("total volume [cm^3]", lambda s: s["volumes_cm3"]["total"]),
-    ("F_max [N]", lambda s: s.get("F_max_N")),
-    ("F_max / total volume [N/cm^3]", lambda s: s.get("force_per_volume_N_per_cm3")),
-    ("F_max / muscle volume [N/cm^3]", lambda s: s.get("force_per_muscle_volume_N_per_cm3")),
+    ("muscle [cm^3]", "muscle"),
+    ("IMAT [cm^3]", "imat"),
+    ("IMCT, without aponeurosis [cm^3]", "imct"),
+    ("aponeurosis [cm^3]", "aponeurosis"),
+    ("subcutaneous fat [cm^3]", "subcutaneous_fat"),
+    ("Table 3 total: muscle + IMAT + IMCT + aponeurosis [cm^3]", "table3_total"),
+    ("model total volume [cm^3]", "total"),
+    ("F_max [N]", "F_max"),
+    ("F_max / Table 3 total volume [N/cm^3]", "force_per_table3_volume"),
+    ("F_max / muscle volume [N/cm^3]", "force_per_muscle_volume"),
+    ("F_max / model total volume [N/cm^3]", "force_per_total_volume"),
 )
+
+
+def _compared(s: Mapping[str, Any]) -> dict:
+    from .summary import compared_quantities
+
+    return dict(s.get("compared") or compared_quantities(dict(s)))
 
 
 def resolve_summary(entry: Mapping[str, Any], where: str = "report") -> dict:
@@ -90,13 +99,22 @@ def cohort_summary(reports: Sequence[Mapping[str, Any]], outdir: str | Path, *, 
     if not reports and not failures:
         raise InputError("cohort_summary: no subjects given")
     sums = [resolve_summary(r, f"cohort entry {i}") for i, r in enumerate(reports)]
-    values = [[q(s) for _, q in QUANTITIES] for s in sums]
+    values = [[_compared(s).get(q) for _, q in QUANTITIES] for s in sums]
+    refs = [(s.get("reference") or {}) for s in sums]
+    ref_values = [[(r.get("values") or {}).get(q) for _, q in QUANTITIES] for r in refs]
+    has_ref = any(r.get("values") for r in refs)
     ref = values[0] if values else []
     header = ["subject", "status"] + [h for h, _ in QUANTITIES] + [f"{h.split(' [')[0]} (ratio to first)" for h, _ in QUANTITIES]
+    if has_ref:
+        header += [f"{h} ({refs[0].get('label') or 'reference'})" for h, _ in QUANTITIES]
+        header += [f"{h.split(' [')[0]} (ratio to first, reference)" for h, _ in QUANTITIES]
     rows = []
-    for s, v in zip(sums, values, strict=True):
+    for i, (s, v) in enumerate(zip(sums, values, strict=True)):
         ratios = [_ratio(x, r) for x, r in zip(v, ref, strict=True)]
-        rows.append([s["label"], s["status"]] + v + ratios)
+        row = [s["label"], s["status"]] + v + ratios
+        if has_ref:
+            row += ref_values[i] + [_ratio(x, r) for x, r in zip(ref_values[i], ref_values[0], strict=True)]
+        rows.append(row)
     csv_rows = [[("" if c is None else repr(float(c)) if isinstance(c, (float, np.floating)) else c) for c in r] for r in rows]
     write_csv(outdir / "cohort.csv", header, csv_rows)
 
@@ -117,18 +135,34 @@ def cohort_summary(reports: Sequence[Mapping[str, Any]], outdir: str | Path, *, 
                      "phantom images, not subject MRI/DTI.</div>")
     if sums:
         labels = [s["label"] for s in sums]
-        t_head = ["quantity"] + labels + [f"{lab} / {labels[0]}" for lab in labels[1:]]
+        rl = (refs[0].get("label") or "reference") if has_ref else ""
+        t_head = ["quantity"]
+        for lab in labels:
+            t_head += [lab] + ([f"{lab} ({rl})"] if has_ref else [])
+        for lab in labels[1:]:
+            t_head += [f"{lab} / {labels[0]}"] + ([f"{lab} / {labels[0]} ({rl})"] if has_ref else [])
         t_rows = []
+
+        def pct(x, r0):
+            return None if (r := _ratio(x, r0)) is None else f"{100 * r:.1f}%"
+
         for qi, (h, _) in enumerate(QUANTITIES):
-            vals = [v[qi] for v in values]
-            pct = [(None if (r := _ratio(x, ref[qi])) is None else f"{100 * r:.1f}%") for x in vals[1:]]
-            t_rows.append([H.html_units(h)] + vals + pct)
-        t_rows.append(["status"] + [s["status"] for s in sums] + [""] * (len(labels) - 1))
+            row = [H.html_units(h)]
+            for i in range(len(sums)):
+                row += [values[i][qi]] + ([ref_values[i][qi]] if has_ref else [])
+            for i in range(1, len(sums)):
+                row += [pct(values[i][qi], ref[qi])] + ([pct(ref_values[i][qi], ref_values[0][qi])] if has_ref else [])
+            t_rows.append(row)
+        t_rows.append(["status"] + sum(([s["status"]] + ([""] if has_ref else []) for s in sums), [])
+                      + [""] * ((len(labels) - 1) * (2 if has_ref else 1)))
         parts.append("<h2>Volumes and force (paper Table 3 layout)</h2>")
         parts.append(H.table(t_head, t_rows))
         parts.append('<p class="foot">Volumes = node count × cell volume. F_max = largest end force over converged '
-                     "steps (whole model). Ratios are to the first subject. Per-subject definitions of IMAT/IMCT are in "
-                     "each subject's report. Data: <code>cohort.csv</code>.</p>")
+                     "steps (whole model). Ratios are to the first subject. IMCT excludes the aponeurosis (when the "
+                     "segment stage had an aponeurosis mask) and the skin, as paper Table 3; the Table 3 total is the muscle "
+                     "with its outer connective tissue, without subcutaneous fat and skin (the paper's 'total volume "
+                     "including the outer layer of connective tissue'). Per-subject definitions are in each subject's "
+                     "report. Data: <code>cohort.csv</code>.</p>")
     if png is not None:
         parts.append("<h2>Force–activation</h2>")
         parts.append(H.img_tag(png, "force vs activation by subject"))

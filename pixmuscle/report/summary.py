@@ -86,6 +86,18 @@ def newton_table(summary: dict) -> tuple[list[str], list[list]]:
     return list(cols), [list(r) for r in zip(*cols.values(), strict=True)]
 
 
+def compared_quantities(summary: dict) -> dict:
+    """The quantities a cohort compares (and ``report.reference`` may give), from a summary:
+    volumes cm^3 (paper Table 3: IMCT without the aponeurosis; ``table3_total`` = muscle + IMAT +
+    IMCT + aponeurosis), F_max N, forces per volume N/cm^3."""
+    v = summary.get("volumes_cm3") or {}
+    return {"muscle": v.get("muscle"), "imat": v.get("imat"), "imct": v.get("imct"), "aponeurosis": v.get("aponeurosis"),
+            "subcutaneous_fat": v.get("subcutaneous_fat"), "total": v.get("total"), "table3_total": v.get("table3_total"),
+            "F_max": summary.get("F_max_N"), "force_per_total_volume": summary.get("force_per_volume_N_per_cm3"),
+            "force_per_table3_volume": summary.get("force_per_table3_volume_N_per_cm3"),
+            "force_per_muscle_volume": summary.get("force_per_muscle_volume_N_per_cm3")}
+
+
 def compute_summary(res: Results, cfg: ReportConfig | None = None, extra: dict | None = None) -> tuple[dict, dict]:
     """Everything the report shows that does not need per-step fields.
 
@@ -160,8 +172,12 @@ def compute_summary(res: Results, cfg: ReportConfig | None = None, extra: dict |
     protocol = run_protocol(res.alpha, res.prescribed)
     by_activation = protocol["kind"] == ACTIVATION
     m = res.model
-    tissue = tissue_table(m.ijk, m.tissue, m.muscle_id, m.shape, m.spacing, m.muscle_names,
-                          f_max=f_max if by_activation else None, rule=cfg.imat_rule, attach_distance=cfg.attach_distance)
+    apo = None
+    if "aponeurosis" in m.sets:  # node set of segment.aponeurosis_mask: not IMCT (paper Table 3)
+        apo = np.zeros(m.n_nodes, bool)
+        apo[np.asarray(m.sets["aponeurosis"], np.int64)] = True
+    tissue = tissue_table(m.ijk, m.tissue, m.muscle_id, m.shape, m.spacing, m.muscle_names, f_max=f_max if by_activation else None,
+                          rule=cfg.imat_rule, attach_distance=cfg.attach_distance, aponeurosis=apo)
     vol = tissue["volumes_cm3"]
     per_step = C.newton_per_step(res.newton, s1)
     cut = None if res.cutbacks is None else np.asarray(res.cutbacks).ravel()
@@ -192,8 +208,8 @@ def compute_summary(res: Results, cfg: ReportConfig | None = None, extra: dict |
         "alpha_at_F_max": a_at if by_activation else None,
         "volumes_cm3": vol,
         "force_per_volume_N_per_cm3": tissue["force_per_volume_N_per_cm3"] if by_activation else None,
-        "force_per_muscle_volume_N_per_cm3": (f_max / vol["muscle"]) if by_activation and f_max is not None
-                                             and vol["muscle"] > 0 else None,
+        "force_per_muscle_volume_N_per_cm3": tissue["force_per_muscle_volume_N_per_cm3"] if by_activation else None,
+        "force_per_table3_volume_N_per_cm3": tissue["force_per_table3_volume_N_per_cm3"] if by_activation else None,
         "tissue_table": [dict(r) for r in tissue["rows"]],
         "tissue_footnote": tissue["footnote"],
         "newton": {
@@ -216,4 +232,7 @@ def compute_summary(res: Results, cfg: ReportConfig | None = None, extra: dict |
     }
     if not by_activation:
         summary["curve"]["displacement_cm"] = _floats(protocol["displacement_cm"])
+    summary["compared"] = compared_quantities(summary)
+    if cfg.reference_values:
+        summary["reference"] = {"label": cfg.reference_values_label, "values": dict(cfg.reference_values)}
     return summary, tissue

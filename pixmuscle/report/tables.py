@@ -7,13 +7,25 @@ Definitions (the tissue codes do not separate them, so the report derives them f
 
 IMAT
     fat that is not part of the subcutaneous layer. Rule ``"enclosed"`` (default): a fat node is
-    subcutaneous when its fat region, connected through voxel faces *within its slice*, touches
-    the outside of the body in that slice (background connected to the in-plane border of the
-    grid); all other fat is IMAT. Rule ``"near_muscle"``: fat within ``attach_distance`` cells of a
-    muscle node is IMAT (simple, but it also counts the subcutaneous fat lying against muscle).
+    subcutaneous when it lies outside the *muscle envelope* and its fat region, connected through
+    voxel faces *within its slice*, touches the outside of the body or the skin in that slice; all
+    other fat is IMAT. The outside is the background connected to the in-plane border of the grid;
+    the skin is the connective tissue within ``skin_cm`` (0.2 cm) of the outside; the muscle
+    envelope is the in-slice region enclosed by muscle and non-skin connective tissue (IMCT,
+    fascia, aponeurosis) after a morphological closing of radius ``envelope_cm`` (0.2 cm), which
+    bridges the gaps a thin aponeurosis has on a coarse grid. All three are physical lengths, so
+    the rule does not change with the resolution: on a coarse grid a thin skin has gaps and the fat
+    touches the background, on a fine grid it is a closed ring the fat touches.
+    Rule ``"near_muscle"``: fat within ``attach_distance`` cells of a muscle node is IMAT (simple,
+    but it also counts the subcutaneous fat lying against muscle).
 IMCT
-    all connective-tissue nodes (code 2). The code does not separate IMCT from aponeurosis and
-    tendon, so unlike paper Table 3 the aponeurosis is included.
+    connective-tissue nodes that are neither skin nor in the ``aponeurosis`` node set (built from
+    ``segment.aponeurosis_mask``), as in paper Table 3 ("IMCT here does not include the
+    aponeurosis"). Without that set the aponeurosis cannot be told from IMCT and is counted in it.
+Table 3 total volume
+    muscle + IMAT + IMCT + aponeurosis: the muscle with its outer connective-tissue layer, without
+    subcutaneous fat and skin (paper Example 3: "per unit total volume (including the outer layer
+    of connective tissue)").
 Attribution to muscles
     IMAT and IMCT nodes belong to the muscle of their nearest muscle node (Chebyshev distance in
     grid cells) when it is within ``attach_distance`` cells; otherwise they are "not attributed".
@@ -35,44 +47,61 @@ _INPLANE = np.zeros((3, 3, 3), bool)
 _INPLANE[1, 1, 1] = _INPLANE[0, 1, 1] = _INPLANE[2, 1, 1] = _INPLANE[1, 0, 1] = _INPLANE[1, 2, 1] = True
 
 TABLE_HEADER = [
-    "region", "muscle [cm^3]", "IMAT [cm^3]", "IMCT [cm^3]", "subcutaneous fat [cm^3]", "total [cm^3]",
-    "muscle nodes", "IMAT nodes", "IMCT nodes", "subcutaneous fat nodes", "F_max [N]", "F_max / total volume [N/cm^3]",
+    "region", "muscle [cm^3]", "IMAT [cm^3]", "IMCT [cm^3]", "aponeurosis [cm^3]", "subcutaneous fat [cm^3]",
+    "skin [cm^3]", "total [cm^3]", "muscle nodes", "IMAT nodes", "IMCT nodes", "aponeurosis nodes",
+    "subcutaneous fat nodes", "skin nodes", "F_max [N]", "F_max / total volume [N/cm^3]",
 ]
+#: the classes of :func:`tissue_classes`, in table order
+CLASSES = ("muscle", "imat", "imct", "aponeurosis", "subcutaneous", "skin")
+_NAMES = {"muscle": "muscle", "imat": "IMAT", "imct": "IMCT", "aponeurosis": "aponeurosis",
+          "subcutaneous": "subcutaneous fat", "skin": "skin"}
 
 FOOTNOTE = (
     "Volumes = node count × cell volume. F_max is the largest end force over the converged steps of the "
     "whole model (mean of the axial reactions of the force sets); one end reaction cannot be split between "
-    "muscles, so per-muscle rows give volumes only. IMAT: {imat_rule}. IMCT: every connective-tissue node "
-    "(includes aponeurosis and tendon, which the tissue codes do not separate). IMAT and IMCT are attributed "
+    "muscles, so per-muscle rows give volumes only. IMAT: {imat_rule}. IMCT: {imct_rule}. IMAT and IMCT are attributed "
     "to the muscle of the nearest muscle node within {attach:g} cells, otherwise 'not attributed'. "
-    "Force per unit volume uses the total model volume (paper Example 3)."
+    "Force per unit volume uses the whole model's volume; the summary also gives F_max per Table 3 total "
+    "(muscle + IMAT + IMCT + aponeurosis) and per muscle volume."
 )
+IMCT_RULES = {
+    True: "connective tissue other than the skin and the aponeurosis mask (paper Table 3)",
+    False: "connective tissue other than the skin (no aponeurosis mask: aponeurosis and tendon are included)",
+}
+#: connective tissue within this distance (cm) of the outside of the body is skin
+SKIN_CM = 0.2
+#: radius (cm) of the closing that makes the muscle envelope
+ENVELOPE_CM = 0.5
 IMAT_RULES = {
-    "enclosed": "fat not connected, within its slice, to the outside of the body (the rest is subcutaneous fat)",
+    "enclosed": "fat inside the muscle envelope or not connected, within its slice, to the outside of the body or the "
+                "skin (the rest is subcutaneous fat)",
     "near_muscle": "fat within {attach:g} cells of a muscle node (the rest is subcutaneous fat)",
 }
 
 
-def subcutaneous_fat(ijk: np.ndarray, tissue: np.ndarray, shape: Sequence[int]) -> np.ndarray:
-    """Fat nodes whose in-slice fat region touches the outside of the body.
-
-    The outside of a slice is the background (non-node, including non-node bone) connected through
-    in-plane voxel faces to the in-plane border of the grid; bone and other holes enclosed by
-    tissue are not outside.
+def outside_and_skin(ijk: np.ndarray, tissue: np.ndarray, shape: Sequence[int], spacing: Sequence[float],
+                     skin_cm: float = SKIN_CM) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """The outside of the body and the skin, slice by slice.
 
     Parameters
     ----------
-    ijk : (N, 3) int
-        Voxel index of every node.
-    tissue : (N,) int
-        Tissue code of every node.
-    shape : (3,) int
-        Grid shape.
+    ijk : (N, 3) int; tissue : (N,) int; shape : (3,) int
+        Node voxel indices, tissue codes and the grid shape.
+    spacing : (3,) float
+        Cell edge lengths, cm.
+    skin_cm : float
+        Connective tissue whose voxel lies within this distance (cm, in-plane, from the voxel's
+        near face) of the outside is skin.
 
     Returns
     -------
-    (N,) bool
-        True for subcutaneous fat nodes.
+    outside : (I+2, J+2, K) bool
+        Background (non-node, including non-node bone) connected through in-plane faces to the
+        in-plane border of the grid, on the grid padded by one cell in-plane.
+    skin : (N,) bool
+        Connective-tissue nodes that are skin.
+    p : tuple of 3 (N,) int arrays
+        The nodes' indices into the padded grid.
     """
     ijk = np.asarray(ijk, np.int64)
     pad = np.array([1, 1, 0])
@@ -82,9 +111,86 @@ def subcutaneous_fat(ijk: np.ndarray, tissue: np.ndarray, shape: Sequence[int]) 
     bg_lab, _ = ndimage.label(occ == 0, structure=_INPLANE)
     border = np.unique(np.concatenate([bg_lab[0].ravel(), bg_lab[-1].ravel(), bg_lab[:, 0].ravel(), bg_lab[:, -1].ravel()]))
     outside = np.isin(bg_lab, border[border > 0])
-    fat = occ == FAT
+    h = np.asarray(spacing, float)
+    # in-plane distance (cm) from each voxel centre to the nearest outside voxel centre; slices apart
+    dist = ndimage.distance_transform_edt(~outside, sampling=(h[0], h[1], 1e9 * max(h[0], h[1])))
+    skin = (occ == CONNECTIVE_TISSUE) & (dist - 0.5 * min(h[0], h[1]) <= skin_cm)
+    return outside, skin[p], p
+
+
+def _disk(radius_cm: float, h: np.ndarray) -> np.ndarray:
+    """In-plane elliptical structuring element (rx, ry pixels from ``radius_cm`` and spacing ``h``), 3-D with one slice."""
+    r = np.maximum(np.ceil(radius_cm / h[:2] - 1e-9).astype(int), 1)
+    x, y = np.ogrid[-r[0]:r[0] + 1, -r[1]:r[1] + 1]
+    return ((x * h[0]) ** 2 + (y * h[1]) ** 2 <= radius_cm ** 2 + 1e-12)[:, :, None]
+
+
+def muscle_envelope(occ: np.ndarray, skin: np.ndarray, spacing: Sequence[float], radius_cm: float = ENVELOPE_CM) -> np.ndarray:
+    """In-slice region enclosed by muscle and non-skin connective tissue.
+
+    Parameters
+    ----------
+    occ : (I, J, K) int
+        Tissue code per voxel (0 where no node).
+    skin : (I, J, K) bool
+        Skin voxels.
+    spacing : (3,) float
+        Cell edge lengths, cm.
+    radius_cm : float
+        Radius of the in-plane closing applied before the holes are filled, cm.
+
+    Returns
+    -------
+    (I, J, K) bool
+    """
+    h = np.asarray(spacing, float)
+    wall = (occ == MUSCLE) | ((occ == CONNECTIVE_TISSUE) & ~skin)
+    r = np.maximum(np.ceil(radius_cm / h[:2] - 1e-9).astype(int), 1)
+    padded = np.pad(wall, ((r[0], r[0]), (r[1], r[1]), (0, 0)))
+    closed = ndimage.binary_closing(padded, structure=_disk(radius_cm, h))[r[0]:-r[0], r[1]:-r[1]]
+    out = np.empty_like(closed)
+    for k in range(closed.shape[2]):  # a loop over slices (not nodes): holes are filled slice by slice
+        out[:, :, k] = ndimage.binary_fill_holes(closed[:, :, k])
+    return out
+
+
+def subcutaneous_fat(ijk: np.ndarray, tissue: np.ndarray, shape: Sequence[int],
+                     spacing: Sequence[float] = (1.0, 1.0, 1.0), skin_cm: float = SKIN_CM,
+                     envelope_cm: float = ENVELOPE_CM) -> np.ndarray:
+    """Fat nodes outside the muscle envelope whose in-slice fat region touches the outside of the
+    body or the skin (module docstring, rule "enclosed").
+
+    See :func:`outside_and_skin` for the outside and the skin (bone and other holes enclosed by
+    tissue are not outside) and :func:`muscle_envelope`.
+
+    Parameters
+    ----------
+    ijk : (N, 3) int
+        Voxel index of every node.
+    tissue : (N,) int
+        Tissue code of every node.
+    shape : (3,) int
+        Grid shape.
+    spacing : (3,) float
+        Cell edge lengths, cm.
+    skin_cm, envelope_cm : float
+        Skin thickness and closing radius of the envelope, cm.
+
+    Returns
+    -------
+    (N,) bool
+        True for subcutaneous fat nodes.
+    """
+    outside, skin, p = outside_and_skin(ijk, tissue, shape, spacing, skin_cm)
+    shell = outside.copy()
+    skin_vox = np.zeros(outside.shape, bool)
+    skin_vox[tuple(a[skin] for a in p)] = True
+    shell |= skin_vox
+    occ = np.zeros(outside.shape, np.int8)
+    occ[p] = np.asarray(tissue, np.int8)
+    fat = (occ == FAT) & ~muscle_envelope(occ, skin_vox, spacing, envelope_cm)
     fat_lab, _ = ndimage.label(fat, structure=_INPLANE)
-    touching = ndimage.binary_dilation(outside, structure=_INPLANE) & fat
+    touching = ndimage.binary_dilation(shell, structure=_INPLANE) & fat
     sub_labels = np.unique(fat_lab[touching])
     sub = np.isin(fat_lab, sub_labels[sub_labels > 0])
     return sub[p]
@@ -124,19 +230,38 @@ def nearest_muscle(ijk: np.ndarray, tissue: np.ndarray, muscle_id: np.ndarray, q
     return ids, dist
 
 
-def tissue_classes(ijk, tissue, muscle_id, shape, *, rule: str = "enclosed", attach_distance: float = 2.0) -> dict:
-    """Classify every node as muscle, IMAT, IMCT or subcutaneous fat and attribute it to a muscle.
+def tissue_classes(ijk, tissue, muscle_id, shape, *, rule: str = "enclosed", attach_distance: float = 2.0,
+                   spacing: Sequence[float] = (1.0, 1.0, 1.0), aponeurosis: np.ndarray | None = None,
+                   skin_cm: float = SKIN_CM) -> dict:
+    """Classify every node as muscle, IMAT, IMCT, aponeurosis, subcutaneous fat or skin, and
+    attribute it to a muscle.
+
+    Parameters
+    ----------
+    ijk : (N, 3) int; tissue, muscle_id : (N,) int; shape : (3,) int
+    rule : {"enclosed", "near_muscle"}
+        IMAT rule (module docstring).
+    attach_distance : float
+        Cells (Chebyshev) within which IMAT/IMCT is attributed to a muscle.
+    spacing : (3,) float
+        Cell edge lengths, cm.
+    aponeurosis : (N,) bool, optional
+        Nodes of the aponeurosis mask; its connective tissue is not IMCT.
+    skin_cm : float
+        Skin thickness, cm.
 
     Returns
     -------
-    dict with (N,) arrays ``muscle``, ``imat``, ``imct``, ``subcutaneous`` (bool) and ``owner``
-    (int64: muscle id 1..M the node is attributed to, 0 = not attributed).
+    dict with (N,) bool arrays ``muscle``, ``imat``, ``imct``, ``aponeurosis``, ``subcutaneous``,
+    ``skin`` (every node in at most one) and ``owner`` (int64: muscle id 1..M the node is
+    attributed to, 0 = not attributed).
     """
     tissue = np.asarray(tissue)
     muscle_id = np.asarray(muscle_id, np.int64)
     fat = tissue == FAT
+    _, skin, _ = outside_and_skin(ijk, tissue, shape, spacing, skin_cm)
     if rule == "enclosed":
-        sub = subcutaneous_fat(ijk, tissue, shape)
+        sub = subcutaneous_fat(ijk, tissue, shape, spacing, skin_cm)
         imat = fat & ~sub
     elif rule == "near_muscle":
         ids, _ = nearest_muscle(ijk, tissue, muscle_id, fat, attach_distance)
@@ -144,16 +269,20 @@ def tissue_classes(ijk, tissue, muscle_id, shape, *, rule: str = "enclosed", att
         imat[fat] = ids > 0
     else:
         raise InputError(f"report.imat_rule: expected 'enclosed' or 'near_muscle', got {rule!r}")
-    imct = tissue == CONNECTIVE_TISSUE
+    ct = tissue == CONNECTIVE_TISSUE
+    apo = ct & ~skin & (np.zeros(tissue.shape, bool) if aponeurosis is None else np.asarray(aponeurosis, bool))
+    imct = ct & ~skin & ~apo
     owner = np.where(tissue == MUSCLE, muscle_id, 0)
-    other = imat | imct
+    other = imat | imct | apo
     ids, _ = nearest_muscle(ijk, tissue, muscle_id, other, attach_distance)
     owner[other] = ids
-    return {"muscle": tissue == MUSCLE, "imat": imat, "imct": imct, "subcutaneous": fat & ~imat, "owner": owner}
+    return {"muscle": tissue == MUSCLE, "imat": imat, "imct": imct, "aponeurosis": apo,
+            "subcutaneous": fat & ~imat, "skin": ct & skin, "owner": owner}
 
 
 def tissue_table(ijk, tissue, muscle_id, shape, spacing, muscle_names: Sequence[str], *,
-                 f_max: float | None = None, rule: str = "enclosed", attach_distance: float = 2.0) -> dict:
+                 f_max: float | None = None, rule: str = "enclosed", attach_distance: float = 2.0,
+                 aponeurosis: np.ndarray | None = None) -> dict:
     """Per-muscle and total tissue volumes, F_max and force per unit total volume (paper Table 3).
 
     Parameters
@@ -166,6 +295,8 @@ def tissue_table(ijk, tissue, muscle_id, shape, spacing, muscle_names: Sequence[
         Names of muscles 1..M.
     f_max : float, optional
         Largest end force of the whole model, N.
+    rule, attach_distance, aponeurosis
+        See :func:`tissue_classes`.
 
     Returns
     -------
@@ -176,7 +307,8 @@ def tissue_table(ijk, tissue, muscle_id, shape, spacing, muscle_names: Sequence[
     cell = float(np.prod(np.asarray(spacing, float)))
     if not cell > 0:
         raise InputError(f"grid/spacing: expected positive cell sizes in cm, got {list(spacing)}")
-    cls = tissue_classes(ijk, tissue, muscle_id, shape, rule=rule, attach_distance=attach_distance)
+    cls = tissue_classes(ijk, tissue, muscle_id, shape, rule=rule, attach_distance=attach_distance,
+                         spacing=spacing, aponeurosis=aponeurosis)
     m = len(muscle_names)
     owner = cls["owner"]
     if owner.size and owner.max() > m:
@@ -185,7 +317,7 @@ def tissue_table(ijk, tissue, muscle_id, shape, spacing, muscle_names: Sequence[
     def per_owner(mask):
         return np.bincount(owner[mask], minlength=m + 1)  # [0] = not attributed
 
-    counts = {k: per_owner(cls[k]) for k in ("muscle", "imat", "imct", "subcutaneous")}
+    counts = {k: per_owner(cls[k]) for k in CLASSES}
     names = list(muscle_names) + ["not attributed"]
     order = list(range(1, m + 1)) + [0]
     rows = []
@@ -203,31 +335,37 @@ def tissue_table(ijk, tissue, muscle_id, shape, spacing, muscle_names: Sequence[
         total["F_max / total volume [N/cm^3]"] = fpv
     rows.append(total)
     imat_rule = IMAT_RULES[rule].format(attach=attach_distance)
+    vols = {k: total[f"{_NAMES[k]} [cm^3]"] for k in CLASSES}
+    table3 = vols["muscle"] + vols["imat"] + vols["imct"] + vols["aponeurosis"]
+    ok = f_max is not None and np.isfinite(f_max)
     return {
         "header": list(TABLE_HEADER),
         "rows": rows,
         "cell_volume_cm3": cell,
-        "volumes_cm3": {"muscle": total["muscle [cm^3]"], "imat": total["IMAT [cm^3]"], "imct": total["IMCT [cm^3]"],
-                        "subcutaneous_fat": total["subcutaneous fat [cm^3]"], "total": total["total [cm^3]"]},
+        "volumes_cm3": {"muscle": vols["muscle"], "imat": vols["imat"], "imct": vols["imct"],
+                        "aponeurosis": vols["aponeurosis"], "subcutaneous_fat": vols["subcutaneous"],
+                        "skin": vols["skin"], "total": total["total [cm^3]"], "table3_total": table3},
+        "force_per_table3_volume_N_per_cm3": float(f_max) / table3 if ok and table3 > 0 else None,
+        "force_per_muscle_volume_N_per_cm3": float(f_max) / vols["muscle"] if ok and vols["muscle"] > 0 else None,
         "f_max_N": None if f_max is None or not np.isfinite(f_max) else float(f_max),
         "force_per_volume_N_per_cm3": fpv,
         "rule": rule,
         "attach_distance": attach_distance,
-        "footnote": FOOTNOTE.format(imat_rule=imat_rule, attach=attach_distance),
+        "footnote": FOOTNOTE.format(imat_rule=imat_rule, attach=attach_distance,
+                                    imct_rule=IMCT_RULES[aponeurosis is not None]),
         "imat_mask": cls["imat"],
     }
 
 
 def _row(name: str, c: dict, cell: float) -> dict:
-    vol = {k: c[k] * cell for k in c}
-    return {
-        "region": name,
-        "muscle [cm^3]": vol["muscle"], "IMAT [cm^3]": vol["imat"], "IMCT [cm^3]": vol["imct"],
-        "subcutaneous fat [cm^3]": vol["subcutaneous"],
-        "total [cm^3]": vol["muscle"] + vol["imat"] + vol["imct"] + vol["subcutaneous"],
-        "muscle nodes": c["muscle"], "IMAT nodes": c["imat"], "IMCT nodes": c["imct"],
-        "subcutaneous fat nodes": c["subcutaneous"], "F_max [N]": None, "F_max / total volume [N/cm^3]": None,
-    }
+    row = {"region": name}
+    for k in CLASSES:
+        row[f"{_NAMES[k]} [cm^3]"] = c[k] * cell
+    row["total [cm^3]"] = sum(c[k] for k in CLASSES) * cell
+    for k in CLASSES:
+        row[f"{_NAMES[k]} nodes"] = c[k]
+    row["F_max [N]"] = row["F_max / total volume [N/cm^3]"] = None
+    return row
 
 
 def table_csv_rows(table: dict) -> list[list]:

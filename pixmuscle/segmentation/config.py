@@ -134,6 +134,9 @@ class SegmentConfig:
         "must_exist": True, "doc": "IMCT mask (NIfTI, any grid): labelled connective tissue"})
     imat_mask: Path | None = field(default=None, metadata={
         "must_exist": True, "doc": "IMAT mask (NIfTI, any grid): labelled fat"})
+    aponeurosis_mask: Path | None = field(default=None, metadata={
+        "must_exist": True, "doc": "aponeurosis mask (NIfTI, any grid): connective tissue that is not IMCT "
+                                   "(paper Table 3); labelled connective tissue, kept as node set 'aponeurosis'"})
     seeds: dict[str, list[list[float]]] = field(default_factory=dict, metadata={
         "doc": "muscle name -> seed point [x, y, z] or list of points inside that muscle (order = ids)"})
     seed_units: Literal["cm", "mm", "voxel"] = field(default="cm", metadata={

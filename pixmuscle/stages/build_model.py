@@ -36,7 +36,8 @@ def read_segmentation(path: str | Path) -> dict[str, Any]:
     -------
     dict
         ``labels`` (I, J, K) int, ``muscle_id`` (I, J, K) int or None, ``muscle_names`` list of
-        str, ``fiber`` (I, J, K, 3) float or None, ``affine`` (4, 4) float (voxel → cm).
+        str, ``fiber`` (I, J, K, 3) float or None, ``affine`` (4, 4) float (voxel → cm), ``masks``
+        (name → (I, J, K) bool: node sets kept by the segment stage, e.g. ``aponeurosis``).
     """
     path = Path(path)
     with open_stage(path, schema=SEGMENTATION_SCHEMA, version=SEGMENTATION_VERSION) as f:
@@ -49,6 +50,7 @@ def read_segmentation(path: str | Path) -> dict[str, Any]:
             "muscle_id": f["muscle_id"][()] if "muscle_id" in f else None,
             "muscle_names": read_strings(f["muscle_names"]) if "muscle_names" in f else [],
             "fiber": f["fiber"][()] if "fiber" in f else None,
+            "masks": {k: f["masks"][k][()] != 0 for k in f["masks"]} if "masks" in f else {},
         }
     if out["affine"].shape != (4, 4):
         raise InputError(f"{path}: /affine: expected a (4, 4) voxel → cm matrix, got shape {out['affine'].shape}")
@@ -109,11 +111,13 @@ def _build(cfg: BuildModelConfig, progress: Any):
     src = Path(cfg.require_input())
     inputs = [src]
     muscle_ids, names, fibers = None, None, None
+    seg_masks: dict = {}
     if cfg.segmentation is not None:
         say(f"reading {src}")
         seg = read_segmentation(src)
         labels, affine = seg["labels"], seg["affine"]
         muscle_ids, names, fibers = seg["muscle_id"], seg["muscle_names"], seg["fiber"]
+        seg_masks = seg["masks"]
         if muscle_ids is not None and muscle_ids.shape != labels.shape:
             raise InputError(f"{src}: /muscle_id has shape {muscle_ids.shape}, /labels {labels.shape}")
         if fibers is not None and fibers.shape != (*labels.shape, 3):
@@ -130,7 +134,7 @@ def _build(cfg: BuildModelConfig, progress: Any):
         _same_grid("fibre image", Path(cfg.fibers), fv.data.shape, np.asarray(fv.affine, float), src, labels.shape, affine)
         fibers = fv.data
         inputs.append(Path(cfg.fibers))
-    masks = {}
+    masks = dict(seg_masks)  # e.g. the aponeurosis: node set of that name
     for name, p in cfg.masks.items():
         mv = load_volume(p, kind="labels", allow_empty=True)
         _same_grid(f"mask '{name}'", Path(p), mv.data.shape, np.asarray(mv.affine, float), src, labels.shape, affine)

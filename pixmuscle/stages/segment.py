@@ -100,7 +100,7 @@ def run_segment(cfg, out_path, progress=None, *, synthetic=False):
     prepare_output_dir(out_path.parent, "output folder")  # before the work, not after it
     stem = out_path.name[:-len(out_path.suffix)] if out_path.suffix else out_path.name
     with capture_warnings() as warnings:
-        mri, res, inputs = _segment(cfg, out_path.with_name(f"{stem}_qc"), progress)
+        mri, res, inputs, masks = _segment(cfg, out_path.with_name(f"{stem}_qc"), progress)
     affine = mri.affine
     # the side outputs first, the stage file last: it is what marks the stage as done (a full disk
     # half-way must not leave a complete-looking segmentation.h5 without its images)
@@ -111,7 +111,7 @@ def run_segment(cfg, out_path, progress=None, *, synthetic=False):
     if cfg.qc_png:
         write_qc_pngs(out_path.with_name(f"{stem}_qc"), mri.data, res)
     write_segmentation(out_path, res, affine, config=cfg, inputs=inputs,
-                       attrs=stage_attrs("segment", inputs, warnings, synthetic=synthetic))
+                       attrs=stage_attrs("segment", inputs, warnings, synthetic=synthetic), masks=masks)
     return res
 
 
@@ -127,7 +127,8 @@ def seeds_in_cm(cfg) -> dict:
 
 
 def _segment(cfg, qc_dir, progress):
-    """Read the inputs and segment: (MRI volume, SegmentationResult, input paths)."""
+    """Read the inputs and segment: (MRI volume, SegmentationResult, input paths, masks to keep:
+    name → (I, J, K) bool on the MRI grid, the aponeurosis when given)."""
     cfg = dataclasses.replace(cfg, seeds=seeds_in_cm(cfg), seed_units="cm")
     mri = load_volume(cfg.mri, kind="image")
     shape, affine = mri.data.shape, mri.affine
@@ -136,9 +137,13 @@ def _segment(cfg, qc_dir, progress):
                                                            "segment.imct_mask")
     imat = None if cfg.imat_mask is None else _mask_on_grid(cfg.imat_mask, shape, affine,
                                                            "segment.imat_mask")
+    masks = {}
+    if cfg.aponeurosis_mask is not None:  # connective tissue, but not IMCT (paper Table 3)
+        masks["aponeurosis"] = _mask_on_grid(cfg.aponeurosis_mask, shape, affine, "segment.aponeurosis_mask")
+        imct = masks["aponeurosis"] if imct is None else imct | masks["aponeurosis"]
     dwi_files = () if cfg.dwi is None else (cfg.dwi.image, cfg.dwi.bvals, cfg.dwi.bvecs)
-    inputs = [p for p in (cfg.mri, cfg.dti_tensor, cfg.dti_v1, *dwi_files, cfg.imct_mask, cfg.imat_mask)
-              if p is not None]
+    inputs = [p for p in (cfg.mri, cfg.dti_tensor, cfg.dti_v1, *dwi_files, cfg.imct_mask, cfg.imat_mask,
+                          cfg.aponeurosis_mask) if p is not None]
     if progress is None:
         from pixmuscle.progress import progress as bar
 
@@ -149,14 +154,18 @@ def _segment(cfg, qc_dir, progress):
                              progress=progress)
     for finding in res.findings:  # segmentation QC (segmentation/qc.py): into the log, the file, the report
         _LOG.warning("segmentation QC: %s", finding.message)
-    return mri, res, inputs
+    if "aponeurosis" in masks:
+        masks["aponeurosis"] &= res.labels == 2  # only where the labels have connective tissue
+    return mri, res, inputs, masks
 
 
-def write_segmentation(path, res: SegmentationResult, affine, *, config=None, inputs=(), attrs=None):
+def write_segmentation(path, res: SegmentationResult, affine, *, config=None, inputs=(), attrs=None, masks=None):
     """Write a :class:`SegmentationResult` as ``pixmuscle.segmentation`` v1 (atomic).
 
     Layout: ``/labels`` (I,J,K) int16, ``/muscle_id`` (I,J,K) int16, ``/muscle_names`` (M,) str,
-    ``/fiber`` (I,J,K,3) float32, ``/affine`` (4,4) cm, ``/qc/*`` diagnostics.
+    ``/fiber`` (I,J,K,3) float32, ``/affine`` (4,4) cm, ``/qc/*`` diagnostics, and
+    ``/masks/<name>`` (I,J,K) uint8 for each of ``masks`` (name → bool array; the build-model stage
+    turns each into a node set of that name).
     """
     affine = np.asarray(affine, dtype=float)
 
@@ -168,6 +177,10 @@ def write_segmentation(path, res: SegmentationResult, affine, *, config=None, in
         write_dataset(f, "fiber", res.fiber.astype(np.float32), units="1",
                       sign="canonical: v_z >= 0 (ties: v_y > 0, then v_x > 0)")
         write_dataset(f, "affine", affine, units="cm")
+        if masks:
+            g = f.create_group("masks")
+            for name, m in masks.items():
+                write_dataset(g, name, np.asarray(m, bool).astype(np.uint8))
         qc = f.create_group("qc")
         for key, val in res.qc.items():
             if key == "seed_voxels_ijk":

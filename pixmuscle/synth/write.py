@@ -26,6 +26,12 @@ SAMPLES = {
     "leg_small": (make_leg_phantom, dict(shape=(96, 96, 6), pixel_cm=0.156, slice_cm=0.5, seed=0)),
     "mg_young_small": (make_mg_phantom, dict(subject="young", shape=(96, 64, 8), seed=1)),
     "mg_old_small": (make_mg_phantom, dict(subject="old", shape=(96, 64, 8), seed=2)),
+    # paper geometry: Example 2 leg at the fine model's 0.078 cm pixel, 25 slices 0.5 cm apart;
+    # Example 3 MG at the paper's pixel, 12.5 cm long (young muscle volume near Table 3's)
+    "leg_paper": (make_leg_phantom, dict(shape=(176, 176, 25), pixel_cm=0.078125, slice_cm=0.5, seed=0)),
+    "leg_paper_small": (make_leg_phantom, dict(shape=(84, 84, 4), pixel_cm=0.15625, slice_cm=0.5, seed=0)),
+    "mg_young": (make_mg_phantom, dict(subject="young", shape=(96, 64, 25), seed=1)),
+    "mg_old": (make_mg_phantom, dict(subject="old", shape=(96, 64, 25), seed=2)),
 }
 
 
@@ -54,6 +60,8 @@ def write_phantom(phantom: Phantom, outdir, prefix: str) -> dict:
     ``{prefix}_muscle_id``     ground-truth muscle ids (0, 1..M) int16
     ``{prefix}_imct``          connective-tissue mask (uint8), as from a specialised sequence
     ``{prefix}_imat``          intramuscular-fat mask (uint8)
+    ``{prefix}_aponeurosis``   connective tissue that is not IMCT (uint8): aponeurosis / deep
+                               fascia and skin (``outer_ct_mask``), for ``segment.aponeurosis_mask``
     ``{prefix}_fibers``        true fibres (I, J, K, 3) on the MRI grid
     ``{prefix}_truth.json``    muscle names, parameters, seed, volumes, ``"synthetic": true``
     ========================== ======================================================
@@ -76,6 +84,7 @@ def write_phantom(phantom: Phantom, outdir, prefix: str) -> dict:
     nii("muscle_id", phantom.muscle_id, phantom.affine, "labels")
     nii("imct", phantom.imct_mask, phantom.affine, "labels")
     nii("imat", phantom.imat_mask, phantom.affine, "labels")
+    nii("aponeurosis", phantom.outer_ct_mask, phantom.affine, "labels")
     nii("fibers", phantom.fiber_true, phantom.affine, "vectors")
     truth = {
         "synthetic": True,
