@@ -1,6 +1,6 @@
 """Cohort and study throughput: serial vs a local Dask cluster of two workers.
 
-Cases: ``configs/mg_young_old.yaml`` (the MG young/old cohort: 2 subjects) and the 3 × 3 study of
+Cases: ``configs/mg_young_old_small.yaml`` (the MG young/old cohort, small variant: 2 subjects) and the 3 × 3 study of
 ``configs/mg_young_old_study.yaml`` (IMCT C10 × σ_max) on its young subject only: 9 cases, the
 segmentation and models made once and shared (the shipped 18-case study would take longer than a
 benchmark step on a shared 2-core machine should). Every run is ``--force`` (all stages redone).
@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-CONFIGS = {"cohort": ROOT / "configs" / "mg_young_old.yaml", "study": ROOT / "out" / "bench_cohort" / "study_young.yaml"}
+CONFIGS = {"cohort": ROOT / "configs" / "mg_young_old_small.yaml", "study": ROOT / "out" / "bench_cohort" / "study_young.yaml"}
 
 
 def write_study_config() -> Path:

@@ -69,7 +69,7 @@ def run(example: str, until: str | None) -> dict:
 
     config = EXAMPLES[example]
     raw = yaml.safe_load((ROOT / config).read_text())
-    out = (ROOT / config).parent / raw["output_dir"]
+    out = ((ROOT / config).parent / raw["output_dir"]).resolve()
     steps = [("segment", ("--until", "segment", "--force")), ("build-model + coarsen", ("--until", "coarsen"))]
     if until != "coarsen":
         steps.append(("solve + report", ()))

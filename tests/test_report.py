@@ -238,12 +238,13 @@ def test_tissue_table_volumes(done):
         assert float(r["IMCT [cm^3]"]) == pytest.approx(truth.n_imct.get(mid, 0) * cell, rel=1e-12)
         assert r["F_max [N]"] == ""  # per-muscle force is not separable
     na = by["not attributed"]
-    assert int(na["IMCT nodes"]) == truth.n_imct[0]
+    # the CT patch far from muscle lies at the body's surface (0.7 cells from it): skin, not IMCT
+    assert int(na["IMCT nodes"]) == 0 and int(na["skin nodes"]) == truth.n_imct[0]
     assert int(na["subcutaneous fat nodes"]) == truth.n_subcutaneous
     tot = by["total"]
     assert float(tot["total [cm^3]"]) == pytest.approx(n * cell, rel=1e-12)
     assert int(tot["IMAT nodes"]) == sum(truth.n_imat.values())
-    for h in ("muscle [cm^3]", "IMAT [cm^3]", "IMCT [cm^3]", "subcutaneous fat [cm^3]", "total [cm^3]"):
+    for h in ("muscle [cm^3]", "IMAT [cm^3]", "IMCT [cm^3]", "subcutaneous fat [cm^3]", "skin [cm^3]", "total [cm^3]"):
         assert sum(float(by[k][h]) for k in ("medial", "lateral", "not attributed")) == pytest.approx(float(tot[h]), rel=1e-12)
     fmax = float(tot["F_max [N]"])
     assert fmax == pytest.approx(truth.f_max, rel=1e-12)
@@ -314,11 +315,29 @@ def test_cohort_summary(tmp_path):
     f = _col(header, rows, "F_max [N]")
     np.testing.assert_allclose(f, [young.f_max, old.f_max, old.f_max], rtol=1e-12)
     np.testing.assert_allclose(_col(header, rows, "F_max (ratio to first)"), f / f[0], rtol=1e-12)
-    vol = _col(header, rows, "total volume [cm^3]")
+    vol = _col(header, rows, "model total volume [cm^3]")
     np.testing.assert_allclose(vol, [young.n_nodes * young.cell_volume, old.n_nodes * old.cell_volume, old.n_nodes * old.cell_volume])
-    np.testing.assert_allclose(_col(header, rows, "F_max / total volume [N/cm^3]"), f / vol, rtol=1e-12)
+    np.testing.assert_allclose(_col(header, rows, "F_max / model total volume [N/cm^3]"), f / vol, rtol=1e-12)
+    muscle = _col(header, rows, "muscle [cm^3]")
+    np.testing.assert_allclose(_col(header, rows, "F_max / muscle volume [N/cm^3]"), f / muscle, rtol=1e-12)
     text = page.read_text()
     assert "broken" in text and "data:image/png;base64," in text and "%" in text
+
+
+def test_cohort_shows_the_reference_values_beside_the_model(tmp_path):
+    young = write_results_fixture(tmp_path / "young.h5", n_steps=2, force_scale=68.76)
+    old = write_results_fixture(tmp_path / "old.h5", n_steps=2, force_scale=37.74, shape=(18, 18, 5))
+    ref = {"young": {"F_max": 68.76, "force_per_muscle_volume": 0.695}, "old": {"F_max": 37.74, "force_per_muscle_volume": 0.6098}}
+    sums = [make_report(r.path, tmp_path / f"r{k}", ReportConfig(vtu=False, slices=False, html=False, dpi=40,
+                                                                   reference=ref[k], reference_label="paper"),
+                        extra={"subject": k}) for k, r in (("young", young), ("old", old))]
+    page = cohort_summary(sums, tmp_path / "cohort")
+    header, rows = _csv(tmp_path / "cohort" / "cohort.csv")
+    np.testing.assert_allclose(_col(header, rows, "F_max [N] (paper)"), [68.76, 37.74])
+    np.testing.assert_allclose(_col(header, rows, "F_max / muscle volume (ratio to first, reference)"), [1.0, 0.6098 / 0.695])
+    assert "old / young (paper)" in page.read_text()
+    with pytest.raises(InputError, match="report.reference.F_mx"):
+        ReportConfig(reference={"F_mx": 1.0})
 
 
 # ------------------------------------------------------------------------------------------ errors

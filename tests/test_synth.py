@@ -169,7 +169,7 @@ def test_write_phantom_round_trip(tmp_path, leg):
 def test_committed_samples():
     names = ["leg_small", "mg_young_small", "mg_old_small"]
     total = sum(f.stat().st_size for f in DATA.glob("*") if f.is_file())
-    assert total < 8e6
+    assert total < 14e6  # includes the paper-size phantoms (leg_paper: 176 x 176 x 25 voxels, mg_young/mg_old)
     for n in names:
         truth = json.loads((DATA / f"{n}_truth.json").read_text())
         assert truth["synthetic"] is True
@@ -191,7 +191,9 @@ def test_synthetic_readme_lists_every_shipped_file():
         if f.name == "README.md":
             continue
         stem = f.name.split(".")[0]
-        prefix = next((p for p in ("leg_demo", "leg_small", "mg_young_small", "mg_old_small")
+        prefix = next((p for p in ("leg_demo", "leg_small", "mg_young_small", "mg_old_small", "leg_paper_small",
+                                   "leg_paper", "mg_young", "mg_old")
                        if stem.startswith(p + "_") and stem[len(p) + 1:] in
-                       ("mri", "dti_tensor", "dti_V1", "labels", "muscle_id", "imct", "imat", "fibers", "truth")), None)
+                       ("mri", "dti_tensor", "dti_V1", "labels", "muscle_id", "imct", "imat", "aponeurosis", "fibers",
+                        "truth")), None)
         assert (f"`{prefix}`" in text) if prefix else (stem in text), f.name

@@ -12,7 +12,7 @@ IMAT
     other fat is IMAT. The outside is the background connected to the in-plane border of the grid;
     the skin is the connective tissue within ``skin_cm`` (0.2 cm) of the outside; the muscle
     envelope is the in-slice region enclosed by muscle and non-skin connective tissue (IMCT,
-    fascia, aponeurosis) after a morphological closing of radius ``envelope_cm`` (0.2 cm), which
+    fascia, aponeurosis) after a morphological closing of radius ``envelope_cm`` (0.5 cm), which
     bridges the gaps a thin aponeurosis has on a coarse grid. All three are physical lengths, so
     the rule does not change with the resolution: on a coarse grid a thin skin has gaps and the fat
     touches the background, on a fine grid it is a closed ring the fat touches.

@@ -80,7 +80,7 @@ class MGAnatomy:
 
     def __init__(self, centre, z_range, rng, *, semi_axes=(2.8, 1.2), bend_cm=0.35, apo_cm=0.12,
                  fat_cm=0.35, skin_cm=0.1, septum_cm=0.12, imct_fraction=0.17, pennation_deg=25.0,
-                 fiber_spread_deg=3.0):
+                 fiber_spread_deg=3.0, imct_layout="parallel"):
         self.centre = np.asarray(centre, dtype=float)
         self.z0, self.z1 = z_range
         self.a, self.b = semi_axes
@@ -99,6 +99,12 @@ class MGAnatomy:
         n = max(int(rng.poisson(density * 4 * ext[0] * ext[1])), 4)
         self.seeds = rng.uniform(-1, 1, size=(n, 2)) * ext - np.array([0.0, self.sweep * length / 2])
         self.tree = cKDTree(self.seeds)
+        self.layout = imct_layout
+        if imct_layout == "series":  # sheets crossing the fibres: planes normal to the fibre, random spacing
+            span = self.fiber[1] * 2 * ext[1] + self.fiber[2] * length + 2.0
+            mean = septum_cm / max(imct_fraction, 1e-3)
+            gaps = rng.uniform(0.5 * mean, 1.5 * mean, size=int(span / (0.5 * mean)) + 2)
+            self.layers = np.cumsum(gaps) - self.fiber[1] * ext[1] - 1.0
         self.imat_field = smooth_field(rng, (0.35, 0.35, 1.5), 16)
         self.spread_fields = [smooth_field(rng, (2.0, 2.0, 4.0), 8) for _ in range(3)]
         self.t_imct = -np.inf  # IMCT where wall distance < t_imct
@@ -126,7 +132,13 @@ class MGAnatomy:
         return np.column_stack([x, y]), zeta, d
 
     def wall_distance(self, q, zeta):
-        """Distance (cm) to the nearest IMCT wall of the Voronoi pattern swept along the fibres."""
+        """Distance (cm) to the nearest IMCT wall: of the Voronoi pattern swept along the fibres
+        (``parallel``: sheets containing the fibres), or of the planes normal to the fibre
+        (``series``: sheets the fibres cross)."""
+        if self.layout == "series":
+            s = q[:, 1] * self.fiber[1] + zeta * self.fiber[2]
+            i = np.clip(np.searchsorted(self.layers, s), 1, len(self.layers) - 1)
+            return np.minimum(np.abs(s - self.layers[i - 1]), np.abs(self.layers[i] - s))
         q0 = q - np.column_stack([np.zeros_like(zeta), self.sweep * (zeta - 0.5 * (self.z1 - self.z0))])
         k = min(5, len(self.seeds))
         d, i = self.tree.query(q0, k=k)
@@ -190,7 +202,7 @@ class MGAnatomy:
 def make_mg_phantom(subject="young", shape=(96, 64, 10), pixel_cm=0.078125, slice_cm=0.5, noise=0.04,
                     dti_factor=2, seed=0, *, length_cm=None, size_scale=None, pennation_deg=None,
                     dti_noise=0.05, supersample=4, supersample_z=2, bias=0.03, septum_cm=None,
-                    fiber_spread_deg=3.0, fascicle_cm=None) -> Phantom:
+                    fiber_spread_deg=3.0, fascicle_cm=None, imct_layout="parallel") -> Phantom:
     """SYNTHETIC medial gastrocnemius of a young or old subject with Table 3 tissue proportions.
 
     A stand-in for the paper's Example 3 data (not public): see docs/phantoms.md.
@@ -224,7 +236,13 @@ def make_mg_phantom(subject="young", shape=(96, 64, 10), pixel_cm=0.078125, slic
     pennation_deg : float, optional
         Fibre angle from the muscle axis, tilted toward +y (the deep aponeurosis).
     fascicle_cm : float, optional
-        Fascicle length; with the pennation it sets the thickness (:func:`semi_axes`).
+        Fascicle length; with the pennation it sets the thickness (:func:`semi_axes`). Default:
+        the subject's (5.68 / 5.11 cm) when ``pennation_deg`` is not given; otherwise the length
+        that keeps the subject's default thickness.
+    imct_layout : {"parallel", "series"}
+        IMCT sheets containing the fibres (default: the endomysium/perimysium-like arrangement,
+        mechanically in parallel with them) or sheets normal to the fibres, which every fibre
+        crosses (in series with them) — for experiments (docs/cohorts.md).
     dti_noise, supersample, supersample_z, bias, fiber_spread_deg
         As in :func:`make_leg_phantom`.
     septum_cm : float, optional
@@ -238,6 +256,8 @@ def make_mg_phantom(subject="young", shape=(96, 64, 10), pixel_cm=0.078125, slic
         and the skin; IMCT of Table 3 is ``imct_mask & ~outer_ct_mask``. Use
         :func:`tissue_volumes` for the Table 3 quantities.
     """
+    if imct_layout not in ("parallel", "series"):
+        raise InputError(f"make_mg_phantom: imct_layout must be 'parallel' or 'series', got {imct_layout!r}")
     if subject not in TABLE3:
         raise InputError(f"make_mg_phantom: subject must be 'young' or 'old', got {subject!r}")
     shape = [int(n) for n in shape]
@@ -248,9 +268,12 @@ def make_mg_phantom(subject="young", shape=(96, 64, 10), pixel_cm=0.078125, slic
     shape, dti_factor = check_phantom_args("make_mg_phantom", shape, pixel_cm, slice_cm, noise, dti_noise, dti_factor)
     size_scale = _size_scale(subject) if size_scale is None else float(size_scale)
     pennation_deg = PENNATION_DEG[subject] if pennation_deg is None else float(pennation_deg)
-    fascicle_cm = FASCICLE_CM[subject] if fascicle_cm is None else float(fascicle_cm)
-    if not fascicle_cm > 0:
-        raise InputError(f"make_mg_phantom: fascicle_cm must be > 0, got {fascicle_cm}")
+    if fascicle_cm is None:  # the subject's thickness (default fascicle at the default pennation)
+        fascicle_cm = FASCICLE_CM[subject] * np.sin(np.radians(PENNATION_DEG[subject])) / np.sin(np.radians(pennation_deg))
+    fascicle_cm = float(fascicle_cm)
+    if not fascicle_cm > 0 or not 0 < pennation_deg < 90:
+        raise InputError(f"make_mg_phantom: fascicle_cm must be > 0 and pennation_deg in (0, 90), got "
+                         f"{fascicle_cm}, {pennation_deg}")
     septum_cm = 1.5 * pixel_cm if septum_cm is None else float(septum_cm)
     ratios = table3_ratios(subject)
     denom = 1.0 + ratios["imct_per_muscle"] + ratios["imat_per_muscle"]
@@ -264,7 +287,7 @@ def make_mg_phantom(subject="young", shape=(96, 64, 10), pixel_cm=0.078125, slic
     z_range = (origin[2], origin[2] + (shape[2] - 1) * slice_cm)
     anatomy = MGAnatomy(centre, z_range, rng, semi_axes=semi_axes(size_scale, fascicle_cm, pennation_deg),
                         septum_cm=septum_cm, imct_fraction=f_ct, pennation_deg=pennation_deg,
-                        fiber_spread_deg=fiber_spread_deg)
+                        fiber_spread_deg=fiber_spread_deg, imct_layout=imct_layout)
     ext = anatomy.outer_extent()
     check_fits("make_mg_phantom", centre - ext, centre + ext, affine, shape)
     anatomy.calibrate(voxel_centres(affine, shape).reshape(-1, 3), f_ct, f_at)
@@ -275,7 +298,7 @@ def make_mg_phantom(subject="young", shape=(96, 64, 10), pixel_cm=0.078125, slic
                   noise=noise, dti_factor=dti_factor, seed=seed, size_scale=size_scale,
                   pennation_deg=pennation_deg, fascicle_cm=fascicle_cm, dti_noise=dti_noise, supersample=supersample,
                   supersample_z=supersample_z, bias=bias, septum_cm=septum_cm,
-                  fiber_spread_deg=fiber_spread_deg, table3_target=dict(TABLE3[subject]))
+                  fiber_spread_deg=fiber_spread_deg, imct_layout=imct_layout, table3_target=dict(TABLE3[subject]))
     return render_phantom(anatomy, shape, affine, dshape, dti_affine, rng, noise=noise,
                           dti_noise=dti_noise, ss=supersample, ss_z=supersample_z, bias=bias,
                           muscle_contrast=0.0, names=["medial_gastrocnemius"], params=params)
