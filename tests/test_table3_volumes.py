@@ -58,7 +58,7 @@ def test_aponeurosis_mask_travels_from_segment_to_the_report(tmp_path):
     import yaml
     from fixtures_results import write_mg_phantom
 
-    from pixmuscle.model.model import load_model
+    from pixmuscle.io.model import load_model
     from pixmuscle.pipeline import run_pipeline
     from pixmuscle.report.tables import tissue_classes
 
