@@ -485,7 +485,10 @@ def _write_summaries(run: RunConfig, summaries: list[dict], failures: dict[str, 
     from .report.cohort import cohort_summary
 
     if run.study is None:
-        return [str(cohort_summary([r for _, r in resolved if r is not None], root, failures=fail_list))]
+        sums = [r for _, r in resolved if r is not None]
+        if not sums and not fail_list:  # e.g. --until segment: no subject has a report yet
+            return []
+        return [str(cohort_summary(sums, root, failures=fail_list))]
     from .report.study import study_summary
 
     rows = []

@@ -147,3 +147,12 @@ def test_cohort_with_one_broken_subject(phantom_dir, tmp_path):
     assert "broken_mri.nii.gz" in failed["corrupt"]
     assert (tmp_path / "cohort" / "good" / "report" / "index.html").exists()
     assert (tmp_path / "cohort" / "cohort.html").exists()
+
+
+def test_cohort_until_segment_writes_no_cohort_page(phantom_dir, tmp_path):
+    """A cohort stopped before its reports (``--until segment``) succeeds and writes no cohort page."""
+    subjects = [{"name": "a"}, {"name": "b"}]
+    cfg_path = _write(tmp_path, _config(phantom_dir, tmp_path / "cohort", steps=1, subjects=subjects))
+    assert run_pipeline(cfg_path, until="segment") is True
+    assert (tmp_path / "cohort" / "a" / "segmentation.h5").exists()
+    assert not (tmp_path / "cohort" / "cohort.html").exists()
