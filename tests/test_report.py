@@ -329,15 +329,15 @@ def test_cohort_shows_the_reference_values_beside_the_model(tmp_path):
     old = write_results_fixture(tmp_path / "old.h5", n_steps=2, force_scale=37.74, shape=(18, 18, 5))
     ref = {"young": {"F_max": 68.76, "force_per_muscle_volume": 0.695}, "old": {"F_max": 37.74, "force_per_muscle_volume": 0.6098}}
     sums = [make_report(r.path, tmp_path / f"r{k}", ReportConfig(vtu=False, slices=False, html=False, dpi=40,
-                                                                   reference=ref[k], reference_label="paper"),
+                                                                   reference_values=ref[k], reference_values_label="paper"),
                         extra={"subject": k}) for k, r in (("young", young), ("old", old))]
     page = cohort_summary(sums, tmp_path / "cohort")
     header, rows = _csv(tmp_path / "cohort" / "cohort.csv")
     np.testing.assert_allclose(_col(header, rows, "F_max [N] (paper)"), [68.76, 37.74])
     np.testing.assert_allclose(_col(header, rows, "F_max / muscle volume (ratio to first, reference)"), [1.0, 0.6098 / 0.695])
     assert "old / young (paper)" in page.read_text()
-    with pytest.raises(InputError, match="report.reference.F_mx"):
-        ReportConfig(reference={"F_mx": 1.0})
+    with pytest.raises(InputError, match="report.reference_values.F_mx"):
+        ReportConfig(reference_values={"F_mx": 1.0})
 
 
 # ------------------------------------------------------------------------------------------ errors

@@ -100,7 +100,7 @@ def cohort_summary(reports: Sequence[Mapping[str, Any]], outdir: str | Path, *, 
         raise InputError("cohort_summary: no subjects given")
     sums = [resolve_summary(r, f"cohort entry {i}") for i, r in enumerate(reports)]
     values = [[_compared(s).get(q) for _, q in QUANTITIES] for s in sums]
-    refs = [(s.get("reference") or {}) for s in sums]
+    refs = [(s.get("reference_values") or {}) for s in sums]
     ref_values = [[(r.get("values") or {}).get(q) for _, q in QUANTITIES] for r in refs]
     has_ref = any(r.get("values") for r in refs)
     ref = values[0] if values else []

@@ -87,7 +87,7 @@ def newton_table(summary: dict) -> tuple[list[str], list[list]]:
 
 
 def compared_quantities(summary: dict) -> dict:
-    """The quantities a cohort compares (and ``report.reference`` may give), from a summary:
+    """The quantities a cohort compares (and ``report.reference_values`` may give), from a summary:
     volumes cm^3 (paper Table 3: IMCT without the aponeurosis; ``table3_total`` = muscle + IMAT +
     IMCT + aponeurosis), F_max N, forces per volume N/cm^3."""
     v = summary.get("volumes_cm3") or {}
@@ -234,5 +234,5 @@ def compute_summary(res: Results, cfg: ReportConfig | None = None, extra: dict |
         summary["curve"]["displacement_cm"] = _floats(protocol["displacement_cm"])
     summary["compared"] = compared_quantities(summary)
     if cfg.reference_values:
-        summary["reference"] = {"label": cfg.reference_values_label, "values": dict(cfg.reference_values)}
+        summary["reference_values"] = {"label": cfg.reference_values_label, "values": dict(cfg.reference_values)}
     return summary, tissue
