@@ -274,6 +274,7 @@ def infsup(size: str, penalty: float | None) -> dict:
     modes that the displacement field can hardly produce, and they make the iterations grow with K.
     """
     import scipy.linalg as sl
+    import scipy.sparse as sp
 
     from pixmuscle.mechanics.solve import build_system
     from pixmuscle.mechanics.tangent import MatrixFreeTangent
@@ -287,10 +288,12 @@ def infsup(size: str, penalty: float | None) -> dict:
     eye = np.eye(3 * n)
     Kdd = np.column_stack([Kd @ eye[:, k] for k in range(3 * n)])
     Kdd = 0.5 * (Kdd + Kdd.T)
+    # G[p, 3m + i] = Σ_L Q[p, L] Σ_J a_L[i, J] ∂ψ_m/∂X_J(L): the stacked gradient operators, rows J·N + L
+    B, a = full.main.B, state.vol.a
     G = np.empty((vol.n_patches, 3 * n))
-    for k in range(3 * n):
-        g = full.main.gradients(eye[:, k].reshape(-1, 3))[0]
-        G[:, k] = vol.Q @ np.einsum("nij,nij->n", state.vol.a, g)
+    for i in range(3):
+        Gi = sum(sp.diags(a[:, i, J]) @ B[J * n:(J + 1) * n] for J in range(3))
+        G[:, i::3] = (vol.Q @ Gi).toarray()
     SG = G @ np.linalg.solve(Kdd, G.T)
     A0 = system.A0
     mu = (A0[:, 0, 1, 0, 1] + A0[:, 0, 2, 0, 2] + A0[:, 1, 2, 1, 2]) / 3.0  # shear moduli, N/cm²
