@@ -148,3 +148,110 @@ def test_view3d_is_drawn(tmp_path):
     assert (tmp_path / "out" / "view3d.png").read_bytes()[:4] == b"\x89PNG"
     assert summary["view3d"].startswith(("VTK", "matplotlib"))
     assert "Model in 3-D" in (tmp_path / "out" / "index.html").read_text()
+
+
+# ------------------------------------------------------------------------------------------ stress tensors
+def _tensors(voigt):
+    """(N, 6) xx yy zz xy yz xz (results.h5) → (N, 3, 3)."""
+    xx, yy, zz, xy, yz, xz = np.moveaxis(voigt, -1, 0)
+    return np.stack([np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1), np.stack([xz, yz, zz], -1)], -2)
+
+
+def test_stress_tensor_reads_back_through_vtk_xdmf_and_vtu_readers(report):
+    """fields.xdmf read by VTK's XDMF reader and the VTUs read by VTK's XML reader give every stress component
+    of results.h5, and the principal stresses VTK computes (ParaView's Tensor Principal Invariants on the VTU,
+    eigenvalues of the XDMF tensor) are the solver's."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkFiltersTensor import vtkTensorPrincipalInvariants
+    from vtkmodules.vtkIOXdmf2 import vtkXdmfReader
+
+    truth, summary, out = report
+    name = "cauchy [N/cm^2]"
+    with h5py.File(truth.path, "r") as f:
+        cauchy, top, alpha = f["steps/cauchy"][()], f["steps/max_principal"][()], f["steps/alpha"][()]
+    xdmf = vtkXdmfReader()
+    xdmf.SetFileName(str(out / "fields.xdmf"))
+    steps = summary["outputs"]["vtu_steps"]
+    assert len(steps) == 3
+    for s in steps:
+        full = _tensors(cauchy[s])
+        assert np.abs(full[:, 0, 1]).max() > 0 and np.abs(full[:, 1, 1] - full[:, 0, 1]).max() > 1  # order matters
+        xdmf.UpdateTimeStep(float(alpha[s]))
+        got = vtk_to_numpy(xdmf.GetOutputDataObject(0).GetCellData().GetArray(name))
+        np.testing.assert_array_equal(got.reshape(-1, 3, 3), full)  # VTK expands Tensor6 to the full tensor
+        np.testing.assert_allclose(np.linalg.eigvalsh(got.reshape(-1, 3, 3))[:, -1], top[s], rtol=1e-12, atol=1e-12)
+
+        vtu = vtk_xml.vtkXMLUnstructuredGridReader()
+        vtu.SetFileName(str(out / "fields" / f"step_{s:04d}.vtu"))
+        inv = vtkTensorPrincipalInvariants()
+        inv.SetInputConnection(vtu.GetOutputPort())
+        inv.GetCellDataArraySelection().EnableArray(name)
+        inv.Update()
+        cd = inv.GetOutput().GetCellData()
+        np.testing.assert_array_equal(vtk_to_numpy(cd.GetArray(name)), cauchy[s])  # VTK's order XX YY ZZ XY YZ XZ
+        eig = np.linalg.eigvalsh(full)
+        for k, col in ((1, 2), (2, 1), (3, 0)):  # VTK's Sigma 1 ≥ Sigma 2 ≥ Sigma 3
+            np.testing.assert_allclose(vtk_to_numpy(cd.GetArray(f"{name} - Sigma {k}")), eig[:, col], rtol=1e-10,
+                                       atol=1e-10 * np.abs(eig).max())
+        np.testing.assert_allclose(vtk_to_numpy(cd.GetArray(f"{name} - Sigma 1")), top[s], rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(vtk_to_numpy(cd.GetArray("max_principal_cauchy [N/cm^2]")), top[s])
+        # the point displacement of the two series is the same field
+        u_x = vtk_to_numpy(xdmf.GetOutputDataObject(0).GetPointData().GetArray("displacement [cm]"))
+        np.testing.assert_array_equal(u_x, vtk_to_numpy(vtu.GetOutput().GetPointData().GetArray("displacement [cm]")))
+
+
+def test_xdmf_tensor6_order_unit():
+    """The XDMF writer stores a VTK-ordered symmetric tensor in the Tensor6 order VTK's XDMF reader expands."""
+    from pixmuscle.io.xdmf import TO_XDMF_TENSOR6
+
+    v = np.array([[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]])  # XX YY ZZ XY YZ XZ
+    np.testing.assert_array_equal(v[:, TO_XDMF_TENSOR6], [[1.0, 4.0, 6.0, 2.0, 5.0, 3.0]])  # XX XY XZ YY YZ ZZ
+
+
+# ------------------------------------------------------------------------------------------ point data
+@pytest.fixture(scope="module")
+def clamped(tmp_path_factory):
+    """A small muscle block, both ends clamped, activated: results.h5 of a real solve and its report."""
+    from pixmuscle.io.results import save_results
+    from pixmuscle.mechanics.solve import solve
+    from pixmuscle.model.tissues import MUSCLE
+    from pixmuscle.verify.mechanics import _cfg, mask_model
+
+    d = tmp_path_factory.mktemp("clamped")
+    model = mask_model(np.ones((4, 4, 7), bool), (0.25, 0.25, 0.5), tissue=MUSCLE, fiber=(0.3, 0.0, 1.0))
+    cfg = _cfg(steps=2, activation={"from": 0.0, "to": 0.6},
+               boundary_conditions=[{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]}])
+    path = save_results(d / "results.h5", solve(model, cfg), config=cfg)
+    summary = make_report(path, d / "out", ReportConfig(dpi=30, slices=False, view3d=False, html=False))
+    return path, summary, d / "out", cfg
+
+
+def test_point_data_is_the_rk_field_and_holds_the_clamped_ends(clamped):
+    """The VTU's point displacement is the model's own field Σ_J Ψ_J(x) d_J at the cell corners: on the clamped
+    z faces it moves ≤ 1 % of the largest point displacement (a mean of nodal values moves them ~40 %), and at
+    sample corners it equals Ψ computed here from the RK shape functions with the solve's support."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    from pixmuscle.rk import shape_functions
+
+    path, summary, out, cfg = clamped
+    s = summary["outputs"]["vtu_steps"][-1]
+    grid = _read(out / "fields" / f"step_{s:04d}.vtu")
+    pts = vtk_to_numpy(grid.GetPoints().GetData())
+    u = vtk_to_numpy(grid.GetPointData().GetArray("displacement [cm]"))
+    with h5py.File(path, "r") as f:
+        X, h, d = f["nodes/X"][()], f["grid/spacing"][()], f["steps/d"][s]
+    umax = np.linalg.norm(u, axis=1).max()
+    assert umax > 1e-3
+    ends = np.isclose(pts[:, 2], X[:, 2].min() - h[2] / 2) | np.isclose(pts[:, 2], X[:, 2].max() + h[2] / 2)
+    assert ends.sum() == 2 * 5 * 5
+    assert np.linalg.norm(u[ends], axis=1).max() <= 0.01 * umax
+    sample = np.random.default_rng(3).choice(pts.shape[0], 12, replace=False)
+    a = np.asarray(cfg.support.a_over_h) * h  # the solve's support (a box: no enlarged supports)
+    psi = shape_functions(X, pts[sample], a, kernel=cfg.support.kernel, order=cfg.support.order,
+                          support_shape=cfg.support.shape)
+    np.testing.assert_allclose(u[sample], psi @ d, rtol=1e-10, atol=1e-12 * umax)
+    fd = grid.GetFieldData().GetAbstractArray("notes")
+    notes = [fd.GetValue(i) for i in range(fd.GetNumberOfValues())]
+    assert any("Psi_J(x) d_J" in n for n in notes) and any("cell data only" in n for n in notes)
+    assert grid.GetPointData().GetArray("cauchy [N/cm^2]") is None  # stresses: cell data only

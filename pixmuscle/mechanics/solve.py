@@ -33,7 +33,7 @@ from ..model.tissues import CONNECTIVE_TISSUE, FAT, MUSCLE, NODE_TISSUES, TISSUE
 from . import newton as _newton
 from .assembly import Assembler, support_pattern
 from .boundary import SIGN_CONVENTION, Constraints, build_constraints, penalty_number
-from .config import SolveConfig
+from .config import SolveConfig, SupportConfig
 from .linsolve import make_solver
 from .results import Results, cauchy_voigt, max_principal
 from .scni import SCNI, build_scni, cell_faces, face_incidence, support_radius
@@ -371,12 +371,18 @@ def node_supports(model: Model, cfg: SolveConfig) -> tuple[np.ndarray, int]:
     support : (N, 3) float
     n_enlarged : int
     """
+    return rk_supports(model, cfg.support)
+
+
+def rk_supports(model: Model, support: SupportConfig) -> tuple[np.ndarray, int]:
+    """:func:`node_supports` for the ``solve.support`` section alone (what the report needs to
+    evaluate a solve's RK field again: same inputs, same supports)."""
     from ..rk import covering_supports
 
-    nominal = support_radius(model.spacing, cfg.support.a_over_h)
+    nominal = support_radius(model.spacing, support.a_over_h)
     faces = cell_faces(np.asarray(model.X, float), model.ijk, np.asarray(model.spacing, float))
-    return covering_supports(model.X, [faces.centre, model.X], nominal, kernel=cfg.support.kernel,
-                             order=cfg.support.order, support_shape=cfg.support.shape)
+    return covering_supports(model.X, [faces.centre, model.X], nominal, kernel=support.kernel,
+                             order=support.order, support_shape=support.shape)
 
 
 def _psi_nodes(model: Model, cfg: SolveConfig, support) -> sp.csr_matrix:

@@ -1,21 +1,25 @@
 """Fields for ParaView: the model as voxel cells, one VTU per load step, a PVD collection, and the
-same series as XDMF + HDF5 for large models (both through meshio).
+same series as XDMF + HDF5 for large models (writers: :mod:`pixmuscle.io.vtu`, :mod:`pixmuscle.io.xdmf`).
 
 Every node of the pixel-point model owns an axis-aligned integration cell of size ``grid/spacing``
 centred on it (docs/architecture.md, "Model frame"); the files hold exactly these cells as VTK
 hexahedra, so ParaView's Slice, Clip, Threshold and Contour return pieces of the body at any
-plane. Nodal values are **cell data** (one value per node = per cell); displacement and the
-stresses are also given as **point data** at the cell corners (mean of the body cells sharing the
-corner) for *Warp By Vector* and smooth colouring. Coordinates are the **reference**
-configuration, cm.
+plane. Nodal values are **cell data** (one value per node = per cell). The displacement is also
+**point data**: at every cell corner x the model's own field there, the RK approximation
+u(x) = Σ_J Ψ_J(x) d_J with the solve's shape functions and coefficients (:func:`corner_displacements`),
+for *Warp By Vector* — held ends stay where the penalty holds them. Stresses are cell data only:
+the model's stress is the smoothed (SCNI) stress of each integration cell, with a material that
+changes from cell to cell; ParaView's *Cell Data to Point Data* smooths it for colouring. The
+field-data array ``notes`` says so in the files. Coordinates are the **reference** configuration, cm.
 
 Arrays (units in the names and in the field-data array ``units``):
 
-``displacement [cm]`` (3), ``fiber_direction [1]`` (3, cells), ``tissue`` (cells: 1 muscle,
-2 connective tissue, 3 fat; names in field data ``tissue_names``), ``muscle_id`` (cells: 0 or 1..M;
-names in ``muscle_names``, index = id), ``imat`` (cells: 1 where the fat node counts as IMAT),
-``max_principal_cauchy [N/cm^2]``, ``cauchy [N/cm^2]`` (6 components XX YY ZZ XY YZ XZ, ParaView's
-symmetric-tensor order; component names stored).
+``displacement [cm]`` (3, cells and points), ``fiber_direction [1]`` (3, cells), ``tissue`` (cells:
+1 muscle, 2 connective tissue, 3 fat; names in field data ``tissue_names``), ``muscle_id`` (cells:
+0 or 1..M; names in ``muscle_names``, index = id), ``imat`` (cells: 1 where the fat node counts as
+IMAT), ``max_principal_cauchy [N/cm^2]`` (cells), ``cauchy [N/cm^2]`` (cells; 6 components XX YY ZZ
+XY YZ XZ, VTK's symmetric-tensor order, component names stored; the XDMF writer stores them in
+the XDMF ``Tensor6`` order).
 
 Frames: ``"model"`` writes the grid-aligned model frame (cm). ``"rotated"`` applies
 ``grid/rotation`` R about the frame origin: points and vectors become ``R x``, stresses ``R σ Rᵀ``.
@@ -23,11 +27,8 @@ Frames: ``"model"`` writes the grid-aligned model frame (cm). ``"rotated"`` appl
 
 from __future__ import annotations
 
-import io
-import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
@@ -41,9 +42,16 @@ DISPLACEMENT = "displacement [cm]"
 FIBER = "fiber_direction [1]"
 CAUCHY = "cauchy [N/cm^2]"
 MAX_PRINCIPAL = "max_principal_cauchy [N/cm^2]"
-UNITS = (f"{DISPLACEMENT}: cm", f"{CAUCHY}: N/cm^2 (Voigt XX YY ZZ XY YZ XZ)", f"{MAX_PRINCIPAL}: N/cm^2",
+UNITS = (f"{DISPLACEMENT}: cm", f"{CAUCHY}: N/cm^2 (components XX YY ZZ XY YZ XZ)", f"{MAX_PRINCIPAL}: N/cm^2",
          f"{FIBER}: unit vector", "tissue: code, see tissue_names", "muscle_id: index into muscle_names",
          "imat: 1 = fat counted as IMAT", "coordinates: cm, reference configuration", "time: activation alpha")
+#: the field-data array ``notes``: what the point data are
+NOTE_POINTS = (f"{DISPLACEMENT} point data: the RK approximation u(x) = sum_J Psi_J(x) d_J at the cell corners, "
+               "with the solve's shape functions (kernel, basis, supports) and coefficients d_J")
+NOTE_NO_POINTS = (f"{DISPLACEMENT}: cell data only (the results file holds no RK coefficients /steps/d or no "
+                  "readable solve configuration to evaluate the field at the cell corners)")
+NOTE_STRESS = (f"{CAUCHY}, {MAX_PRINCIPAL}: cell data only, the smoothed (SCNI) stress of each node's integration "
+               "cell; ParaView's Cell Data to Point Data smooths them for colouring")
 
 
 def voigt_to_tensor(v: np.ndarray) -> np.ndarray:
@@ -121,15 +129,15 @@ def cells_to_points(hexa: np.ndarray, values: np.ndarray, n_points: int) -> np.n
 
 def step_mesh(ijk: np.ndarray, origin, spacing, fields: StepFields, *, fiber: np.ndarray, tissue: np.ndarray,
               muscle_id: np.ndarray, imat: np.ndarray | None = None, rotation: np.ndarray | None = None,
-              cells: tuple | None = None):
-    """A meshio mesh of one step: the model's voxel cells with cell and point data.
+              cells: tuple | None = None, point_u: np.ndarray | None = None):
+    """A meshio mesh of one step: the model's voxel cells with cell data and point data.
 
     Parameters
     ----------
     ijk : (N, 3) int; origin, spacing : (3,) cm
         The model grid.
     fields : StepFields
-        Displacement (cm) and stresses (N/cm²) of the step.
+        Displacement (cm) and stresses (N/cm²) of the step at the nodes (cell data).
     fiber : (N, 3); tissue, muscle_id : (N,)
         Model data.
     imat : (N,) bool, optional
@@ -137,122 +145,122 @@ def step_mesh(ijk: np.ndarray, origin, spacing, fields: StepFields, *, fiber: np
         Applied to points, vectors and tensors when given.
     cells : (points, hexa), optional
         The output of :func:`voxel_hexahedra` (computed when not given).
+    point_u : (P, 3) float, cm, optional
+        Displacement at the cell corners (model frame; :func:`corner_displacements`); the point
+        data ``displacement [cm]`` when given, none otherwise.
     """
     import meshio
 
     points, hexa = cells if cells is not None else voxel_hexahedra(ijk, origin, spacing)
     u, fib, cau = np.asarray(fields.u, float), np.asarray(fiber, float), fields.cauchy
+    pu = None if point_u is None else np.asarray(point_u, float)
     if rotation is not None:
         R = np.asarray(rotation, float)
         points, u, fib = points @ R.T, u @ R.T, fib @ R.T
+        pu = None if pu is None else pu @ R.T
         cau = rotate_voigt(cau, R) if cau is not None else None
-    n_pts = points.shape[0]
     cd = {DISPLACEMENT: u, FIBER: fib, "tissue": np.asarray(tissue, np.int32), "muscle_id": np.asarray(muscle_id, np.int32)}
-    pd = {DISPLACEMENT: cells_to_points(hexa, u, n_pts)}
+    pd = {} if pu is None else {DISPLACEMENT: pu}
     if imat is not None:
         cd["imat"] = np.asarray(imat, np.int32)
     if fields.max_principal is not None:
         cd[MAX_PRINCIPAL] = np.asarray(fields.max_principal, np.float64)
-        pd[MAX_PRINCIPAL] = cells_to_points(hexa, cd[MAX_PRINCIPAL], n_pts)
     if cau is not None:
         cd[CAUCHY] = np.asarray(cau, np.float64)
-        pd[CAUCHY] = cells_to_points(hexa, cd[CAUCHY], n_pts)
     return meshio.Mesh(np.ascontiguousarray(points, np.float64), [("hexahedron", hexa)],
                        point_data={k: np.ascontiguousarray(v) for k, v in pd.items()},
                        cell_data={k: [np.ascontiguousarray(v)] for k, v in cd.items()})
 
 
-def _string_array(name: str, values: Sequence[str]) -> str:
-    codes = " ".join(" ".join(str(b) for b in s.encode("utf-8")) + " 0" for s in values)
-    return f'      <Array type="String" Name={quoteattr(name)} NumberOfTuples="{len(values)}" format="ascii">{codes}</Array>\n'
+def field_data(muscle_names: Sequence[str], *, point_displacement: bool = True) -> dict[str, list[str]]:
+    """The files' field data: ``units``, ``tissue_names`` (index = code), ``muscle_names`` (index = id)
+    and ``notes`` (what the point data are)."""
+    return {"units": list(UNITS), "tissue_names": ["background", *[TISSUE_NAMES.get(c, str(c)) for c in (1, 2, 3)]],
+            "muscle_names": ["(not muscle)", *muscle_names],
+            "notes": [NOTE_POINTS if point_displacement else NOTE_NO_POINTS, NOTE_STRESS]}
 
 
-def field_data_xml(muscle_names: Sequence[str]) -> str:
-    """The ``<FieldData>`` block: ``units``, ``tissue_names`` (index = code), ``muscle_names`` (index = id)."""
-    tissues = ["background", *[TISSUE_NAMES.get(c, str(c)) for c in (1, 2, 3)]]
-    return ("    <FieldData>\n" + _string_array("units", UNITS) + _string_array("tissue_names", tissues)
-            + _string_array("muscle_names", ["(not muscle)", *muscle_names]) + "    </FieldData>\n")
+def rk_support(res) -> tuple[np.ndarray, dict]:
+    """The RK shape-function options a solve used, from its results file.
 
+    Reads the ``support`` section of the solve configuration stored in the file (defaults where
+    it is not given, as the solve did) and, when the solve enlarged supports around thin features
+    (``solver_info["supports_enlarged"]``, or not recorded), computes them again with the solve's
+    own function (:func:`pixmuscle.mechanics.solve.rk_supports`).
 
-def annotate_vtu(path: str | Path, muscle_names: Sequence[str]) -> Path:
-    """Add the field data (units and names) and the Cauchy component names to a VTU written by meshio."""
-    path = Path(path)
-    text = path.read_text(encoding="utf-8")
-    text = text.replace("<UnstructuredGrid>", "<UnstructuredGrid>\n" + field_data_xml(muscle_names).rstrip("\n"), 1)
-    names = " ".join(f'ComponentName{i}="{c}"' for i, c in enumerate(CAUCHY_COMPONENTS))
-    text = re.sub(r'(<DataArray[^>]*Name="' + re.escape(CAUCHY) + r'")', r"\1 " + names, text)
-    path.write_text(text, encoding="utf-8")
-    return path
+    Returns
+    -------
+    support : (3,) or (N, 3) float64, cm
+    options : dict
+        ``kernel``, ``order``, ``support_shape`` for :func:`pixmuscle.rk.shape_functions`.
 
-
-class XdmfSeries:
-    """A time series of one mesh as XDMF 3 + HDF5 (``fields.xdmf`` beside ``fields.h5``).
-
-    Written here rather than with ``meshio.xdmf.TimeSeriesWriter``, which puts the HDF5 file in
-    the current working directory instead of beside the XDMF file. meshio's
-    ``TimeSeriesReader`` and ParaView (XDMF3 reader) read it.
+    Raises
+    ------
+    InputError
+        The stored configuration cannot be read.
     """
+    import yaml
 
-    def __init__(self, path: str | Path, points: np.ndarray, hexa: np.ndarray):
-        import h5py
+    from ..config import parse_section
+    from ..errors import InputError
+    from ..mechanics.config import SupportConfig
+    from ..mechanics.scni import support_radius
+    from ..mechanics.solve import rk_supports
 
-        self.path = Path(path)
-        self.h5_path = self.path.with_suffix(".h5")
-        # built in memory and written on close (pixmuscle.store.write_bytes_atomic): HDF5 closing a
-        # file on a full disk can crash the interpreter; a Python write raises a clean error
-        self._buf = io.BytesIO()
-        self._h5 = h5py.File(self._buf, "w")
-        self._h5["points"] = np.asarray(points, float)
-        self._h5["hexahedra"] = np.asarray(hexa, np.int64)
-        self._n_points, self._n_cells = points.shape[0], hexa.shape[0]
-        self._steps: list[str] = []
-
-    def _item(self, ds: str, shape: tuple, dtype) -> str:
-        kind, prec = ("Int", 8) if np.dtype(dtype).kind in "iu" else ("Float", 8)
-        dims = " ".join(map(str, shape))
-        return (f'<DataItem DataType="{kind}" Precision="{prec}" Dimensions="{dims}" Format="HDF">'
-                f"{self.h5_path.name}:/{ds}</DataItem>")
-
-    def write(self, t: float, point_data: dict, cell_data: dict) -> None:
-        """Append one time step (``cell_data`` values as meshio gives them: lists of one array)."""
-        k = len(self._steps)
-        attrs = []
-        for centre, data in (("Node", point_data), ("Cell", cell_data)):
-            for name, v in data.items():
-                v = np.asarray(v[0] if isinstance(v, list) else v)
-                ds = f"step_{k:04d}/{centre.lower()}/{name}"
-                self._h5[ds] = v
-                typ = {1: "Scalar", 3: "Vector", 6: "Tensor6"}.get(1 if v.ndim == 1 else v.shape[1], "Matrix")
-                attrs.append(f'<Attribute Name={quoteattr(name)} AttributeType="{typ}" Center="{centre}">'
-                             f"{self._item(ds, v.shape, v.dtype)}</Attribute>")
-        topo = (f'<Topology TopologyType="Hexahedron" NumberOfElements="{self._n_cells}">'
-                f'{self._item("hexahedra", (self._n_cells, 8), np.int64)}</Topology>')
-        geo = f'<Geometry GeometryType="XYZ">{self._item("points", (self._n_points, 3), float)}</Geometry>'
-        self._steps.append(f'<Grid Name="step {k}" GridType="Uniform"><Time Value="{float(t)!r}"/>{topo}{geo}'
-                           + "".join(attrs) + "</Grid>")
-
-    def close(self) -> Path:
-        from ..store import write_bytes_atomic
-
-        self._h5.close()
-        write_bytes_atomic(self.h5_path, self._buf.getbuffer())
-        body = "\n".join(f"      {g}" for g in self._steps)
-        self.path.write_text('<?xml version="1.0"?>\n<Xdmf Version="3.0">\n  <Domain>\n'
-                             '    <Grid Name="fields" GridType="Collection" CollectionType="Temporal">\n'
-                             f"{body}\n    </Grid>\n  </Domain>\n</Xdmf>\n")
-        return self.path
+    text = (res.meta or {}).get("config") or ""
+    try:
+        raw = yaml.safe_load(text) if text.strip() else {}
+    except yaml.YAMLError as exc:
+        raise InputError(f"{(res.meta or {}).get('path', 'results')}: attribute config is not YAML: {exc}") from None
+    raw = raw.get("support") if isinstance(raw, dict) else None
+    sc = parse_section(SupportConfig, raw or {}, "solve.support")
+    m = res.model
+    enlarged = (res.info or {}).get("supports_enlarged")
+    if enlarged is None or int(enlarged) > 0:
+        support = rk_supports(m, sc)[0]
+    else:
+        support = support_radius(m.spacing, sc.a_over_h)
+    return support, {"kernel": sc.kernel, "order": sc.order, "support_shape": sc.shape}
 
 
-def write_pvd(path: str | Path, files: Sequence[str], times: Sequence[float]) -> Path:
-    """Write a ParaView collection file listing ``files`` (paths relative to the PVD) at ``times``."""
-    lines = ['<?xml version="1.0"?>',
-             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
-             "  <Collection>"]
-    for f, t in zip(files, times, strict=True):
-        lines.append(f'    <DataSet timestep="{float(t)!r}" group="" part="0" file={quoteattr(str(f))}/>')
-    lines += ["  </Collection>", "</VTKFile>", ""]
-    Path(path).write_text("\n".join(lines))
-    return Path(path)
+def corner_displacements(res, steps: Sequence[int], points: np.ndarray, hexa: np.ndarray) -> tuple[np.ndarray, int]:
+    """The model's displacement field at the cell corners for each of ``steps``: u(x) = Σ_J Ψ_J(x) d_J.
+
+    Parameters
+    ----------
+    res : Results
+        With RK coefficients ``d`` and the solve configuration in ``meta["config"]``.
+    steps : sequence of int
+        Stored states.
+    points : (P, 3) float, cm; hexa : (N, 8) int
+        Cell corners (model frame) and the corners of each node's cell (:func:`voxel_hexahedra`).
+
+    Returns
+    -------
+    u : (k, P, 3) float64, cm
+    n_fallback : int
+        Corners where the RK field is not defined (a singular moment matrix beside a one-voxel
+        strand): there ``u`` is the mean of the nodal displacements of the cells around the corner.
+
+    Raises
+    ------
+    InputError
+        No coefficients in the results, or an unreadable solve configuration.
+    """
+    from ..errors import InputError
+    from ..rk import rk_evaluate
+
+    if res.d is None:
+        raise InputError(f"{(res.meta or {}).get('path', 'results')}: no /steps/d (RK coefficients)")
+    support, options = rk_support(res)
+    steps = [int(s) for s in steps]
+    d = np.concatenate([np.asarray(res.d[s], float) for s in steps], axis=1)  # (N, 3k): all states at once
+    u = rk_evaluate(np.asarray(res.model.X, float), points, support, d, singular="nan", **options)
+    bad = ~np.isfinite(u).all(axis=1)
+    if bad.any():
+        nodal = np.concatenate([np.asarray(res.u[s], float) for s in steps], axis=1)
+        u[bad] = cells_to_points(hexa, nodal, points.shape[0])[bad]
+    return np.ascontiguousarray(u.reshape(points.shape[0], len(steps), 3).transpose(1, 0, 2)), int(bad.sum())
 
 
 def vtu_steps(converged: np.ndarray, every_nth: int) -> np.ndarray:
@@ -273,30 +281,40 @@ def vtu_steps(converged: np.ndarray, every_nth: int) -> np.ndarray:
 def write_vtu_series(outdir: str | Path, steps: Sequence[int], times: Sequence[float],
                      load_fields: Callable[[int], StepFields], *, ijk, origin, spacing, fiber, tissue, muscle_id,
                      muscle_names: Sequence[str] = (), imat=None, rotation=None, compression: str | None = "zlib",
-                     xdmf: bool = False, progress=None) -> dict:
+                     xdmf: bool = False, point_u: Callable[[np.ndarray], np.ndarray] | None = None,
+                     progress=None) -> dict:
     """Write ``fields/step_XXXX.vtu`` for each step, ``fields.pvd`` listing them at ``times`` and,
     with ``xdmf``, the same series as ``fields.xdmf`` + ``fields.h5``.
+
+    Parameters
+    ----------
+    point_u : callable, optional
+        ``point_u(points, hexa)`` → (k, P, 3): the displacement at the cell corners ``points``
+        (model frame, cm) for each of ``steps`` (:func:`corner_displacements`); without it the
+        files hold no point data.
 
     Returns
     -------
     dict
         ``pvd`` (Path), ``vtu`` (list of Path), ``xdmf`` (Path or None).
     """
-    import meshio
+    from ..io.vtu import write_pvd, write_vtu
+    from ..io.xdmf import XdmfSeries
 
     outdir = Path(outdir)
     (outdir / "fields").mkdir(parents=True, exist_ok=True)
     cells = voxel_hexahedra(ijk, origin, spacing)
+    corner_u = None if point_u is None else point_u(*cells)
+    fd = field_data(muscle_names, point_displacement=corner_u is not None)
     rel, paths = [], []
     writer = None
     try:
-        for s, t in zip(steps, times, strict=True):  # loop over load steps
+        for n, (s, t) in enumerate(zip(steps, times, strict=True)):  # loop over load steps
             name = f"fields/step_{int(s):04d}.vtu"
             mesh = step_mesh(ijk, origin, spacing, load_fields(int(s)), fiber=fiber, tissue=tissue, muscle_id=muscle_id,
-                             imat=imat, rotation=rotation, cells=cells)
-            meshio.write(outdir / name, mesh, file_format="vtu",
-                         compression=None if compression in (None, "none") else compression)
-            annotate_vtu(outdir / name, muscle_names)
+                             imat=imat, rotation=rotation, cells=cells, point_u=None if corner_u is None else corner_u[n])
+            write_vtu(outdir / name, mesh, field_data=fd, component_names={CAUCHY: CAUCHY_COMPONENTS},
+                      compression=compression)
             if xdmf:
                 if writer is None:
                     writer = XdmfSeries(outdir / "fields.xdmf", mesh.points, mesh.cells[0].data)
