@@ -65,7 +65,17 @@ def test_muscle_forces_of_independent_columns(tmp_path):
     assert not [w for w in summary["warnings"] if "muscle" in w]
     for name in ("muscle_forces.png", "muscle_forces.csv", "index.html"):
         assert (tmp_path / "report" / name).is_file()
-    assert "Force by muscle" in (tmp_path / "report" / "index.html").read_text()
+    page = (tmp_path / "report" / "index.html").read_text()
+    assert "Force by muscle" in page
+    # the table's footnote says what its per-muscle F_max is now (not "volumes only")
+    assert "volumes only" not in summary["tissue_footnote"] and "volumes only" not in page
+    assert "contribution to the end force" in summary["tissue_footnote"]
+    # muscles ramped differently: curves against the load factor, each muscle's α named (not the node mean)
+    from pixmuscle.report.curves import load_factor_label
+
+    label = load_factor_label(summary["solver_info"]["activation"])
+    assert label.startswith("load factor") and "medial 0→0.9" in label and "lateral 0→0.4" in label
+    assert load_factor_label({"medial": [0.0, 0.9], "lateral": [0.0, 0.9]}) is None
     with pytest.raises(InputError, match="unknown muscle 'soleus'"):
         run_muscle_forces(tmp_path / "model.h5", cfg, MuscleForcesConfig(muscles=["soleus"]), tmp_path / "x.h5")
     assert not (tmp_path / "x.h5").exists()

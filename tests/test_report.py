@@ -242,14 +242,40 @@ def test_tissue_table_volumes(done):
     assert int(na["IMCT nodes"]) == 0 and int(na["skin nodes"]) == truth.n_imct[0]
     assert int(na["subcutaneous fat nodes"]) == truth.n_subcutaneous
     tot = by["total"]
-    assert float(tot["total [cm^3]"]) == pytest.approx(n * cell, rel=1e-12)
+    assert float(tot["whole model [cm^3]"]) == pytest.approx(n * cell, rel=1e-12)
     assert int(tot["IMAT nodes"]) == sum(truth.n_imat.values())
-    for h in ("muscle [cm^3]", "IMAT [cm^3]", "IMCT [cm^3]", "subcutaneous fat [cm^3]", "skin [cm^3]", "total [cm^3]"):
+    total = "total volume: muscle + IMAT + IMCT + aponeurosis [cm^3]"
+    for h in ("muscle [cm^3]", "IMAT [cm^3]", "IMCT [cm^3]", "subcutaneous fat [cm^3]", "skin [cm^3]", total,
+              "whole model [cm^3]"):
         assert sum(float(by[k][h]) for k in ("medial", "lateral", "not attributed")) == pytest.approx(float(tot[h]), rel=1e-12)
     fmax = float(tot["F_max [N]"])
     assert fmax == pytest.approx(truth.f_max, rel=1e-12)
-    assert float(tot["F_max / total volume [N/cm^3]"]) == pytest.approx(fmax / (n * cell), rel=1e-12)
-    assert summary["force_per_volume_N_per_cm3"] == pytest.approx(fmax / (n * cell), rel=1e-12)
+    # the paper's total volume: muscle + IMAT + IMCT (+ aponeurosis, none here), without subcutaneous fat and skin
+    v3 = (sum(truth.n_muscle.values()) + sum(truth.n_imat.values()) + truth.n_imct[1]) * cell
+    assert float(tot[total]) == pytest.approx(v3, rel=1e-12) and v3 < 0.8 * n * cell
+    assert float(tot["F_max / total volume [N/cm^3]"]) == pytest.approx(fmax / v3, rel=1e-12)
+    assert summary["force_per_volume_N_per_cm3"] == pytest.approx(fmax / v3, rel=1e-12)
+    assert summary["force_per_whole_model_volume_N_per_cm3"] == pytest.approx(fmax / (n * cell), rel=1e-12)
+
+
+def test_table3_section_uses_the_papers_total_volume(done):
+    """The page's table headed "(paper Table 3)" and its first screen divide F_max by muscle + IMAT + IMCT +
+    aponeurosis (the paper's total volume), not by the whole model with its subcutaneous fat."""
+    truth, summary, out = done
+    page = (out / "index.html").read_text()
+    section = page.split("(paper Table 3)</h2>", 1)[1].split("<h2>", 1)[0]
+    head = [html.unescape(h) for h in section.split("<thead>", 1)[1].split("</thead>", 1)[0]
+            .replace("<tr>", "").replace("</tr>", "").replace("</th>", "").split("<th>")[1:]]
+    last = section.split("<tbody>", 1)[1].split("<tr>")[-1]
+    cells = [html.unescape(c.split("</td>")[0]) for c in last.split("<td>")[1:]]
+    row = dict(zip(head, cells, strict=True))
+    v3 = (sum(truth.n_muscle.values()) + sum(truth.n_imat.values()) + truth.n_imct[1]) * truth.cell_volume
+    assert row["region"] == "total"
+    assert float(row["F_max / total volume [N/cm³]"]) == pytest.approx(truth.f_max / v3, rel=1e-3)
+    assert float(row["total volume: muscle + IMAT + IMCT + aponeurosis [cm³]"]) == pytest.approx(v3, rel=1e-3)
+    assert float(row["whole model [cm³]"]) == pytest.approx(truth.n_nodes * truth.cell_volume, rel=1e-3)
+    first = html.unescape(page.split("<h2>", 1)[0])
+    assert f"F_max / total volume (muscle + IMAT + IMCT + aponeurosis) [N/cm³]</td><td>{truth.f_max / v3:.4g}<" in first
 
 
 def test_near_muscle_rule_against_brute_force(done):
@@ -412,3 +438,39 @@ def test_force_sets_follow_constrained_components():
         select_force_sets(r, ["z_max"], constrained={"z_max": "xy"})
     with pytest.raises(InputError, match="not an end set"):
         select_force_sets(r, ["bone_surface"])
+
+
+# ------------------------------------------------------------------------------------------ page layout
+def _page_width(path, width):
+    """(document scroll width, window width) of an HTML file in headless Chromium at ``width`` px."""
+    import re
+    import shutil
+    import subprocess
+
+    exe = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+    if exe is None:
+        pytest.skip("no Chromium on this machine")
+    probe = path.with_name(path.stem + "_probe.html")
+    script = ('<script>document.body.setAttribute("data-width", document.documentElement.scrollWidth + " " + '
+              "window.innerWidth)</script>")
+    probe.write_text(path.read_text(encoding="utf-8").replace("</body>", script + "</body>"), encoding="utf-8")
+    out = subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu", f"--window-size={width},900",
+                          "--dump-dom", probe.as_uri()], capture_output=True, text=True, timeout=60).stdout
+    scroll, inner = map(int, re.search(r'data-width="(\d+) (\d+)"', out).groups())
+    return scroll, inner
+
+
+def test_wide_tables_scroll_within_the_page(done, tmp_path):
+    """A per-slice area table of many muscles (and the report page itself) never widens the page: a table
+    wider than the page scrolls inside its own box (checked in a real browser)."""
+    from pixmuscle.report.html import page, table
+
+    names = [f"gastrocnemius_{k} [cm^2]" for k in range(12)] + [f"soleus_{k} [cm^2]" for k in range(12)]
+    wide = page("areas", ["<h3>Area per slice [cm²]</h3>",
+                          table(["slice", "z [cm]", *names], [[k, 0.5 * k, *np.linspace(1, 2, len(names))] for k in range(4)])])
+    (tmp_path / "areas.html").write_text(wide, encoding="utf-8")
+    scroll, inner = _page_width(tmp_path / "areas.html", 1400)
+    assert scroll <= inner == 1400
+    _, _, out = done
+    scroll, inner = _page_width(out / "index.html", 900)
+    assert scroll <= inner

@@ -155,8 +155,25 @@ def _pyplot():
     return plt
 
 
+def load_factor_label(activation: Mapping[str, Sequence[float]] | None) -> str | None:
+    """x-axis label naming each muscle's α when the muscles ramp differently (then a single α, the
+    mean over the muscle nodes, would hide what each muscle reached): the curves are drawn against
+    the load factor s, muscle m's α being a_m + s (b_m − a_m). None when one α describes every muscle.
+
+    Parameters
+    ----------
+    activation : mapping muscle → (a_m, b_m), optional
+        Mean α of each muscle at load factor 0 and 1 (``solver_info["activation"]``).
+    """
+    if not activation or len({tuple(np.round(np.asarray(v, float), 12)) for v in activation.values()}) < 2:
+        return None
+    ramps = ", ".join(f"{m} {float(a):.3g}→{float(b):.3g}" for m, (a, b) in activation.items())
+    return f"load factor s [-]; α of each muscle ramps linearly with s: {ramps}"
+
+
 def plot_force_activation(curves: Mapping[str, Sequence], path: str | Path, *, dpi: int = 120,
-                          title: str = "Isometric force vs activation", ylabel: str = "force at fixed end [N]") -> Path:
+                          title: str = "Isometric force vs activation", ylabel: str = "force at fixed end [N]",
+                          xlabel: str = "activation α [-]") -> Path:
     """Plot one or more force–activation curves on one axes (paper Figs. 11, 15c).
 
     Parameters
@@ -166,7 +183,12 @@ def plot_force_activation(curves: Mapping[str, Sequence], path: str | Path, *, d
         Use several labels to overlay ends, coarse and fine models, or subjects.
     path : path-like
         PNG file to write.
+    xlabel : str
+        Label of the x axis (e.g. :func:`load_factor_label` when the curves are given against the
+        load factor).
     """
+    import textwrap
+
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6.0, 4.2), layout="constrained")
     markers = "osD^v<>ph*"
@@ -183,7 +205,7 @@ def plot_force_activation(curves: Mapping[str, Sequence], path: str | Path, *, d
             ax.plot(a[~ok], fo[~ok], "x", color="red", markersize=8,
                     label=None if flagged else "not converged")
             flagged = True
-    ax.set_xlabel("activation α [-]")
+    ax.set_xlabel(textwrap.fill(xlabel, 80), fontsize=9 if len(xlabel) > 60 else None)
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.axhline(0.0, color="0.7", linewidth=0.8)

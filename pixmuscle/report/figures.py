@@ -101,13 +101,17 @@ def _force_activation(ctx: Context) -> Path | None:
     main_label = next((lab for lab, p in compare.items()
                        if path is not None and Path(p).resolve() == path.resolve() and len(compare) > 1), None)
     prefix = f"{main_label}: " if main_label else ""
-    curves = {f"{prefix}{s} end": (res.alpha, np.array(summary["curve"]["axial_force_N"][s], float), res.converged)
+    # muscles ramped differently: against the load factor, each muscle's α named on the axis
+    by_load = C.load_factor_label((res.info or {}).get("activation"))
+    x = res.load_factor if by_load else res.alpha
+    curves = {f"{prefix}{s} end": (x, np.array(summary["curve"]["axial_force_N"][s], float), res.converged)
               for s in summary["force_sets"]}
-    curves.update(_compare_curves(compare, path, ctx))
+    curves.update(_compare_curves(compare, path, ctx, by_load=bool(by_load)))
     for lab, c in dict(extra.get("curves") or {}).items():
         curves[str(lab)] = tuple(c)
     return C.plot_force_activation(curves, ctx.outdir / "force_activation.png", dpi=ctx.cfg.dpi,
-                                   title=f"Isometric force vs activation — {summary['label']}")
+                                   title=f"Isometric force vs {'load factor' if by_load else 'activation'} — "
+                                         f"{summary['label']}", xlabel=by_load or "activation α [-]")
 
 
 @figure("force_displacement", "force", "End force vs the prescribed displacement (mean of the force sets), beside "
@@ -131,8 +135,9 @@ def _force_displacement(ctx: Context) -> Path | None:
         title=f"Force vs prescribed displacement — {s['label']}")
 
 
-def _compare_curves(compare: dict, main: Path | None, ctx: Context) -> dict:
-    """End-force curves of the other results files in ``compare`` (label → path)."""
+def _compare_curves(compare: dict, main: Path | None, ctx: Context, by_load: bool = False) -> dict:
+    """End-force curves of the other results files in ``compare`` (label → path), against α or
+    (``by_load``) the load factor."""
     from ..io.results import load_results
 
     curves = {}
@@ -145,7 +150,8 @@ def _compare_curves(compare: dict, main: Path | None, ctx: Context) -> dict:
             sets = C.select_force_sets(other.reaction, ctx.cfg.force_sets, other.constrained_text())
             f = C.end_force(C.axial_forces(other.reaction, sets), other.n_states)
             if sets:
-                curves[f"{lab} (mean of {', '.join(sets)})"] = (other.alpha, f, other.converged)
+                curves[f"{lab} (mean of {', '.join(sets)})"] = (other.load_factor if by_load else other.alpha, f,
+                                                               other.converged)
         except (InputError, OSError) as exc:
             ctx.warnings.append(f"comparison curve '{lab}' not drawn: {exc}")
     return curves

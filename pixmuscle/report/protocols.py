@@ -32,27 +32,37 @@ def fill_muscle_forces(rows: list[dict], mf: Mapping, k: int) -> dict:
     """Put each muscle's force contribution at step ``k`` (the step of F_max) into the tissue-table rows.
 
     ``F_max [N]`` of a muscle row = its contribution C_m at step k; ``F_max / total volume`` =
-    that over the row's total volume. Rows of muscles that were not solved alone keep "—".
+    that over the row's total volume (muscle + IMAT + IMCT + aponeurosis). Rows of muscles that
+    were not solved alone keep "—".
 
     Returns
     -------
     dict
         ``step``, ``contribution_N`` (name → value), ``interaction_N``, ``baseline_N``, ``total_N``.
     """
+    from .tables import FORCE_PER_TOTAL, TOTAL
+
     c = {m: float(v[k]) for m, v in mf["contribution"].items()}
     for r in rows:
         if r["region"] in c:
             r["F_max [N]"] = c[r["region"]]
-            vol = r.get("total [cm^3]") or 0.0
-            r["F_max / total volume [N/cm^3]"] = c[r["region"]] / vol if vol > 0 else None
+            vol = r.get(TOTAL) or 0.0
+            r[FORCE_PER_TOTAL] = c[r["region"]] / vol if vol > 0 else None
     return {"step": int(k), "contribution_N": c, "interaction_N": float(mf["interaction"][k]),
             "baseline_N": float(mf["baseline"][k]), "total_N": float(mf["total"][k])}
 
 
-def plot_muscle_forces(mf: Mapping, path, *, dpi: int = 120, title: str = "") -> Path:
-    """Stacked per-muscle contributions (+ baseline, + interaction) against α, with the all-muscle force."""
+def plot_muscle_forces(mf: Mapping, path, *, dpi: int = 120, title: str = "", activation: Mapping | None = None) -> Path:
+    """Stacked per-muscle contributions (+ baseline, + interaction) against α, with the all-muscle force.
+
+    ``activation`` (muscle → mean α at load factor 0 and 1): when the muscles ramp differently the
+    x axis is the load factor, with each muscle's α named (:func:`~pixmuscle.report.curves.load_factor_label`).
+    """
+    from .curves import load_factor_label
+
+    by_load = load_factor_label(activation)
     fig, ax = _figure()
-    a = np.asarray(mf["alpha"], float)
+    a = np.asarray(mf["load_factor"] if by_load else mf["alpha"], float)
     ok = np.isfinite(a) & np.isfinite(mf["total"])
     layers = [("passive / baseline", mf["baseline"])] + list(mf["contribution"].items())
     pos = np.zeros(a.shape)
@@ -63,7 +73,7 @@ def plot_muscle_forces(mf: Mapping, path, *, dpi: int = 120, title: str = "") ->
     inter = np.nan_to_num(np.asarray(mf["interaction"], float))
     ax.plot(a[ok], (pos + inter)[ok], "k-", lw=1.8, label="all muscles (solve)")
     ax.plot(a[ok], pos[ok], "k--", lw=1.0, label="sum of parts (without interaction)")
-    ax.set_xlabel("mean activation α of the muscle nodes [-]")
+    ax.set_xlabel(by_load or "mean activation α of the muscle nodes [-]", fontsize=7 if by_load else None)
     ax.set_ylabel("end force [N]")
     ax.set_title(title or "End force split by muscle")
     ax.grid(alpha=0.3)
@@ -74,7 +84,7 @@ def plot_muscle_forces(mf: Mapping, path, *, dpi: int = 120, title: str = "") ->
 
 
 def muscle_forces_section(mf: Mapping, outdir, *, rows: list[dict], k: int | None, dpi: int = 120,
-                          warnings: list | None = None) -> tuple[list[str], dict]:
+                          warnings: list | None = None, activation: Mapping | None = None) -> tuple[list[str], dict]:
     """Figure, CSV and HTML of the per-muscle contributions; fills the tissue-table rows at step ``k``.
 
     Returns
@@ -90,7 +100,7 @@ def muscle_forces_section(mf: Mapping, outdir, *, rows: list[dict], k: int | Non
     cols = [np.arange(len(mf["alpha"])), mf["alpha"], mf["total"], mf["baseline"],
             *[mf["contribution"][m] for m in names], mf["interaction"]]
     csv = write_csv(outdir / "muscle_forces.csv", header, [list(r) for r in zip(*cols, strict=True)])
-    png = plot_muscle_forces(mf, outdir / "muscle_forces.png", dpi=dpi)
+    png = plot_muscle_forces(mf, outdir / "muscle_forces.png", dpi=dpi, activation=activation)
     info = fill_muscle_forces(rows, mf, k) if k is not None else {}
     failed = {r: s for r, s in mf["runs"].items() if s != "complete"}
     if failed and warnings is not None:

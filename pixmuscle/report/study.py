@@ -156,7 +156,8 @@ def _answer(dep: Mapping[str, Any], keys: Sequence[str], ref: str) -> list[str]:
         per = "; ".join(f"{H.esc(k)} alone: up to {100 * v:.2f} %" for k, v in d["per_key"].items())
         parts.append(f"<p>{H.esc(s)} / {H.esc(ref)}: {verdict} (from {d['min']:.4g} to {d['max']:.4g}, mean "
                      f"{d['mean']:.4g}). Changing one key with the others fixed: {per}.</p>")
-    parts.append(f'<p class="foot">Force per unit volume = F_max / total volume (muscle + IMCT + IMAT + fat). '
+    parts.append(f'<p class="foot">Force per unit volume = F_max / total volume, the paper\'s total volume: muscle + '
+                 "IMAT + IMCT + aponeurosis (without subcutaneous fat and skin). "
                  f"A change below {100 * RATIO_TOLERANCE:.0f} % of the mean is called “hardly”; the numbers are given "
                  "so that a reader can apply another threshold. Cases that failed are left out.</p>")
     return parts
@@ -193,14 +194,15 @@ def study_summary(rows: Sequence[Mapping[str, Any]], keys: Sequence[str], outdir
     keys = list(keys)
     ok = [r for r in rows if r.get("summary")]
     header = ["case", "subject", *keys, "status", "F_max [N]", "F_max / total volume [N/cm^3]",
-              "F_max / muscle volume [N/cm^3]", "muscle [cm^3]", "total volume [cm^3]", "error"]
+              "F_max / muscle volume [N/cm^3]", "muscle [cm^3]", "total volume: muscle + IMAT + IMCT + aponeurosis [cm^3]",
+              "error"]
     table_rows = []
     for r in rows:
         s = r.get("summary") or {}
         vol = s.get("volumes_cm3", {})
         table_rows.append([r["case"], r["subject"], *[r["params"][k] for k in keys],
                            s.get("status", "failed" if r.get("error") else ""), s.get("F_max_N"), s.get(_FPV),
-                           s.get("force_per_muscle_volume_N_per_cm3"), vol.get("muscle"), vol.get("total"),
+                           s.get("force_per_muscle_volume_N_per_cm3"), vol.get("muscle"), vol.get("table3_total"),
                            r.get("error") or ""])
     csv_rows = [[("" if c is None else repr(float(c)) if isinstance(c, (float, np.floating)) else c) for c in row]
                 for row in table_rows]

@@ -89,11 +89,12 @@ def newton_table(summary: dict) -> tuple[list[str], list[list]]:
 def compared_quantities(summary: dict) -> dict:
     """The quantities a cohort compares (and ``report.reference_values`` may give), from a summary:
     volumes cm^3 (paper Table 3: IMCT without the aponeurosis; ``table3_total`` = muscle + IMAT +
-    IMCT + aponeurosis), F_max N, forces per volume N/cm^3."""
+    IMCT + aponeurosis, the paper's total volume; ``total`` = the whole model), F_max N, forces per
+    volume N/cm^3 (``force_per_total_volume``: per whole-model volume)."""
     v = summary.get("volumes_cm3") or {}
     return {"muscle": v.get("muscle"), "imat": v.get("imat"), "imct": v.get("imct"), "aponeurosis": v.get("aponeurosis"),
             "subcutaneous_fat": v.get("subcutaneous_fat"), "total": v.get("total"), "table3_total": v.get("table3_total"),
-            "F_max": summary.get("F_max_N"), "force_per_total_volume": summary.get("force_per_volume_N_per_cm3"),
+            "F_max": summary.get("F_max_N"), "force_per_total_volume": summary.get("force_per_whole_model_volume_N_per_cm3"),
             "force_per_table3_volume": summary.get("force_per_table3_volume_N_per_cm3"),
             "force_per_muscle_volume": summary.get("force_per_muscle_volume_N_per_cm3")}
 
@@ -116,7 +117,9 @@ def compute_summary(res: Results, cfg: ReportConfig | None = None, extra: dict |
         the driving set in a displacement-driven run), ``force_sets``, ``protocol`` (``kind``
         "activation" or "displacement", :func:`~pixmuscle.report.displacement.run_protocol`; the
         activation quantities below are None for a displacement-driven run),
-        ``F_max_N``, ``alpha_at_F_max``, ``volumes_cm3``, ``force_per_volume_N_per_cm3``,
+        ``F_max_N``, ``alpha_at_F_max``, ``volumes_cm3``, ``force_per_volume_N_per_cm3`` (F_max per
+        unit total volume, the paper's: muscle + IMAT + IMCT + aponeurosis; the same as
+        ``force_per_table3_volume_N_per_cm3``), ``force_per_whole_model_volume_N_per_cm3``,
         ``force_per_muscle_volume_N_per_cm3``, ``tissue_table`` (rows), ``newton`` statistics,
         ``constraint_gap``, ``stages`` (config, provenance and warnings of every stage),
         ``warnings`` (all of them), ...
@@ -210,6 +213,8 @@ def compute_summary(res: Results, cfg: ReportConfig | None = None, extra: dict |
         "force_per_volume_N_per_cm3": tissue["force_per_volume_N_per_cm3"] if by_activation else None,
         "force_per_muscle_volume_N_per_cm3": tissue["force_per_muscle_volume_N_per_cm3"] if by_activation else None,
         "force_per_table3_volume_N_per_cm3": tissue["force_per_table3_volume_N_per_cm3"] if by_activation else None,
+        "force_per_whole_model_volume_N_per_cm3":
+            tissue["force_per_whole_model_volume_N_per_cm3"] if by_activation else None,
         "tissue_table": [dict(r) for r in tissue["rows"]],
         "tissue_footnote": tissue["footnote"],
         "newton": {

@@ -22,10 +22,12 @@ IMCT
     connective-tissue nodes that are neither skin nor in the ``aponeurosis`` node set (built from
     ``segment.aponeurosis_mask``), as in paper Table 3 ("IMCT here does not include the
     aponeurosis"). Without that set the aponeurosis cannot be told from IMCT and is counted in it.
-Table 3 total volume
+Total volume (the paper's, beside Table 3)
     muscle + IMAT + IMCT + aponeurosis: the muscle with its outer connective-tissue layer, without
-    subcutaneous fat and skin (paper Example 3: "per unit total volume (including the outer layer
-    of connective tissue)").
+    subcutaneous fat and skin (paper, young vs old example: "force generated per unit total volume
+    (including the outer layer of connective tissue)"). "F_max / total volume" is always this.
+    The volume of every node of the model (with subcutaneous fat and skin) is called the
+    *whole-model volume*.
 Attribution to muscles
     IMAT and IMCT nodes belong to the muscle of their nearest muscle node (Chebyshev distance in
     grid cells) when it is within ``attach_distance`` cells; otherwise they are "not attributed".
@@ -46,10 +48,15 @@ from ..model.tissues import CONNECTIVE_TISSUE, FAT, MUSCLE
 _INPLANE = np.zeros((3, 3, 3), bool)
 _INPLANE[1, 1, 1] = _INPLANE[0, 1, 1] = _INPLANE[2, 1, 1] = _INPLANE[1, 0, 1] = _INPLANE[1, 2, 1] = True
 
+#: the paper's total volume: muscle + IMAT + IMCT + aponeurosis (module docstring)
+TOTAL = "total volume: muscle + IMAT + IMCT + aponeurosis [cm^3]"
+#: every node's cell, subcutaneous fat and skin included
+WHOLE = "whole model [cm^3]"
+FORCE_PER_TOTAL = "F_max / total volume [N/cm^3]"
 TABLE_HEADER = [
-    "region", "muscle [cm^3]", "IMAT [cm^3]", "IMCT [cm^3]", "aponeurosis [cm^3]", "subcutaneous fat [cm^3]",
-    "skin [cm^3]", "total [cm^3]", "muscle nodes", "IMAT nodes", "IMCT nodes", "aponeurosis nodes",
-    "subcutaneous fat nodes", "skin nodes", "F_max [N]", "F_max / total volume [N/cm^3]",
+    "region", "muscle [cm^3]", "IMAT [cm^3]", "IMCT [cm^3]", "aponeurosis [cm^3]", TOTAL, "subcutaneous fat [cm^3]",
+    "skin [cm^3]", WHOLE, "muscle nodes", "IMAT nodes", "IMCT nodes", "aponeurosis nodes",
+    "subcutaneous fat nodes", "skin nodes", "F_max [N]", FORCE_PER_TOTAL,
 ]
 #: the classes of :func:`tissue_classes`, in table order
 CLASSES = ("muscle", "imat", "imct", "aponeurosis", "subcutaneous", "skin")
@@ -58,12 +65,19 @@ _NAMES = {"muscle": "muscle", "imat": "IMAT", "imct": "IMCT", "aponeurosis": "ap
 
 FOOTNOTE = (
     "Volumes = node count × cell volume. F_max is the largest end force over the converged steps of the "
-    "whole model (mean of the axial reactions of the force sets); one end reaction cannot be split between "
-    "muscles, so per-muscle rows give volumes only. IMAT: {imat_rule}. IMCT: {imct_rule}. IMAT and IMCT are attributed "
-    "to the muscle of the nearest muscle node within {attach:g} cells, otherwise 'not attributed'. "
-    "Force per unit volume uses the whole model's volume; the summary also gives F_max per Table 3 total "
-    "(muscle + IMAT + IMCT + aponeurosis) and per muscle volume."
+    "whole model (mean of the axial reactions of the force sets); {per_muscle}. IMAT: {imat_rule}. IMCT: "
+    "{imct_rule}. IMAT and IMCT are attributed to the muscle of the nearest muscle node within {attach:g} cells, "
+    "otherwise 'not attributed'. Total volume = muscle + IMAT + IMCT + aponeurosis, the paper's (the muscle with "
+    "its outer connective tissue, without subcutaneous fat and skin); F_max / total volume uses it. Whole model = "
+    "every node's cell, subcutaneous fat and skin included."
 )
+#: what the per-muscle rows' F_max is, without and with the one-muscle-at-a-time solves (muscle_forces)
+PER_MUSCLE_NOTES = {
+    False: "one end reaction cannot be split between muscles, so per-muscle rows give volumes only (the "
+           "muscle_forces section of the configuration gives each muscle's force)",
+    True: "a muscle's F_max is its contribution to the end force at the step of F_max, from the solves with one "
+          "muscle active at a time (section Force by muscle)",
+}
 IMCT_RULES = {
     True: "connective tissue other than the skin and the aponeurosis mask (paper Table 3)",
     False: "connective tissue other than the skin (no aponeurosis mask: aponeurosis and tendon are included)",
@@ -283,7 +297,8 @@ def tissue_classes(ijk, tissue, muscle_id, shape, *, rule: str = "enclosed", att
 def tissue_table(ijk, tissue, muscle_id, shape, spacing, muscle_names: Sequence[str], *,
                  f_max: float | None = None, rule: str = "enclosed", attach_distance: float = 2.0,
                  aponeurosis: np.ndarray | None = None) -> dict:
-    """Per-muscle and total tissue volumes, F_max and force per unit total volume (paper Table 3).
+    """Per-muscle and total tissue volumes, F_max and force per unit total volume (paper Table 3 and
+    the text beside it; the definitions are in the module docstring).
 
     Parameters
     ----------
@@ -301,8 +316,11 @@ def tissue_table(ijk, tissue, muscle_id, shape, spacing, muscle_names: Sequence[
     Returns
     -------
     dict with ``header`` (list of str), ``rows`` (list of dict keyed like the header, one per
-    muscle, then "not attributed", then "total"), ``cell_volume_cm3``, ``volumes_cm3`` (totals),
-    ``f_max_N``, ``force_per_volume_N_per_cm3``, ``footnote``.
+    muscle, then "not attributed", then "total"), ``cell_volume_cm3``, ``volumes_cm3`` (totals:
+    ``table3_total`` is the total volume muscle + IMAT + IMCT + aponeurosis, ``total`` the whole
+    model), ``f_max_N``, ``force_per_volume_N_per_cm3`` (F_max / total volume, the paper's),
+    ``force_per_whole_model_volume_N_per_cm3``, ``force_per_muscle_volume_N_per_cm3``, ``footnote``
+    (see :func:`footnote`).
     """
     cell = float(np.prod(np.asarray(spacing, float)))
     if not cell > 0:
@@ -327,44 +345,50 @@ def tissue_table(ijk, tissue, muscle_id, shape, spacing, muscle_names: Sequence[
     tot = {k: int(counts[k].sum()) for k in counts}
     total = _row("total", tot, cell)
     n_total = int(np.asarray(tissue).shape[0])
-    total["total [cm^3]"] = n_total * cell
-    fpv = None
-    if f_max is not None and np.isfinite(f_max):
-        total["F_max [N]"] = float(f_max)
-        fpv = float(f_max) / total["total [cm^3]"] if total["total [cm^3]"] > 0 else None
-        total["F_max / total volume [N/cm^3]"] = fpv
-    rows.append(total)
-    imat_rule = IMAT_RULES[rule].format(attach=attach_distance)
-    vols = {k: total[f"{_NAMES[k]} [cm^3]"] for k in CLASSES}
-    table3 = vols["muscle"] + vols["imat"] + vols["imct"] + vols["aponeurosis"]
+    total[WHOLE] = n_total * cell
     ok = f_max is not None and np.isfinite(f_max)
+    if ok:
+        total["F_max [N]"] = float(f_max)
+        total[FORCE_PER_TOTAL] = float(f_max) / total[TOTAL] if total[TOTAL] > 0 else None
+    rows.append(total)
+    vols = {k: total[f"{_NAMES[k]} [cm^3]"] for k in CLASSES}
+    table3 = total[TOTAL]
     return {
         "header": list(TABLE_HEADER),
         "rows": rows,
         "cell_volume_cm3": cell,
         "volumes_cm3": {"muscle": vols["muscle"], "imat": vols["imat"], "imct": vols["imct"],
                         "aponeurosis": vols["aponeurosis"], "subcutaneous_fat": vols["subcutaneous"],
-                        "skin": vols["skin"], "total": total["total [cm^3]"], "table3_total": table3},
+                        "skin": vols["skin"], "total": total[WHOLE], "table3_total": table3},
         "force_per_table3_volume_N_per_cm3": float(f_max) / table3 if ok and table3 > 0 else None,
         "force_per_muscle_volume_N_per_cm3": float(f_max) / vols["muscle"] if ok and vols["muscle"] > 0 else None,
         "f_max_N": None if f_max is None or not np.isfinite(f_max) else float(f_max),
-        "force_per_volume_N_per_cm3": fpv,
+        "force_per_volume_N_per_cm3": total[FORCE_PER_TOTAL] if ok else None,
+        "force_per_whole_model_volume_N_per_cm3": float(f_max) / total[WHOLE] if ok and total[WHOLE] > 0 else None,
         "rule": rule,
         "attach_distance": attach_distance,
-        "footnote": FOOTNOTE.format(imat_rule=imat_rule, attach=attach_distance,
-                                    imct_rule=IMCT_RULES[aponeurosis is not None]),
+        "aponeurosis_mask": aponeurosis is not None,
+        "footnote": footnote(rule, attach_distance, aponeurosis is not None),
         "imat_mask": cls["imat"],
     }
+
+
+def footnote(rule: str, attach_distance: float, aponeurosis_mask: bool, per_muscle_force: bool = False) -> str:
+    """The table's footnote: definitions, and what the per-muscle rows' F_max is (``per_muscle_force``:
+    filled from the one-muscle-at-a-time solves)."""
+    return FOOTNOTE.format(imat_rule=IMAT_RULES[rule].format(attach=attach_distance), attach=attach_distance,
+                           imct_rule=IMCT_RULES[aponeurosis_mask], per_muscle=PER_MUSCLE_NOTES[per_muscle_force])
 
 
 def _row(name: str, c: dict, cell: float) -> dict:
     row = {"region": name}
     for k in CLASSES:
         row[f"{_NAMES[k]} [cm^3]"] = c[k] * cell
-    row["total [cm^3]"] = sum(c[k] for k in CLASSES) * cell
+    row[TOTAL] = sum(c[k] for k in ("muscle", "imat", "imct", "aponeurosis")) * cell
+    row[WHOLE] = sum(c[k] for k in CLASSES) * cell
     for k in CLASSES:
         row[f"{_NAMES[k]} nodes"] = c[k]
-    row["F_max [N]"] = row["F_max / total volume [N/cm^3]"] = None
+    row["F_max [N]"] = row[FORCE_PER_TOTAL] = None
     return row
 
 

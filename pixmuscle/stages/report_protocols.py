@@ -52,8 +52,9 @@ def protocol_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: 
         parts += ["<h2>Activation per muscle</h2>",
                   table(["muscle", "α at the start (mean)", "α at the end (mean)"],
                         [[m, a, b] for m, (a, b) in activation.items()]),
-                  '<p class="foot">solve.activation: per-muscle values and/or an activation image; α ramps linearly '
-                  "over the load steps; the curves' α is the mean over the muscle nodes.</p>"]
+                  '<p class="foot">solve.activation: per-muscle values and/or an activation image (α: the mean over '
+                  "each muscle's nodes). Each muscle's α ramps linearly with the load factor s, α = start + s (end − "
+                  "start), so the force curves are drawn against s, with every muscle's α named on the axis.</p>"]
     if extra.get("muscle_forces"):
         from .muscle_forces import load_muscle_forces
 
@@ -66,7 +67,8 @@ def protocol_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: 
             if k is not None and k >= len(mf["total"]):
                 warnings.append("per-muscle forces: the decomposition has fewer steps than the results; not tabulated")
                 k = None
-            p, info = muscle_forces_section(mf, outdir, rows=tissue["rows"], k=k, dpi=dpi, warnings=warnings)
+            p, info = muscle_forces_section(mf, outdir, rows=tissue["rows"], k=k, dpi=dpi, warnings=warnings,
+                                            activation=activation)
             parts += p
             summary["outputs"].update(info.pop("outputs"))
             if info:
@@ -76,6 +78,11 @@ def protocol_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: 
                     warnings.append(f"per-muscle forces: their all-muscle run gives {info['total_N']:.6g} N at the step "
                                     f"of F_max, the results {fmax:.6g} N (stale muscle_forces file?)")
                 summary["tissue_table"] = [dict(r) for r in tissue["rows"]]
+                if info["contribution_N"]:  # the per-muscle rows now show forces, not volumes only
+                    from ..report.tables import footnote
+
+                    tissue["footnote"] = summary["tissue_footnote"] = footnote(
+                        tissue["rule"], tissue["attach_distance"], tissue["aponeurosis_mask"], per_muscle_force=True)
     if extra.get("force_length"):
         from .force_length import load_force_length
 
