@@ -465,7 +465,8 @@ def _report_summary(s: dict) -> dict | None:
             out = json.loads(js.read_text())
             out["label"] = s["subject"]
             return out
-    res = next(iter(s.get("results", {}).values()), None)
+    results = s.get("results", {})
+    res = results.get("fine") or next(iter(results.values()), None)  # the finest model is the answer
     if res and Path(res).exists():
         from .stages.report import summarize_results
 

@@ -256,12 +256,13 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
                                 (mpath,)))
         protocols.update(_protocol_stages(cfg, which, mpath, rpath, stages if "solve" in active else None))
     if "report" in active:
-        main = results[cfg.models[0]]
+        # the headline is the finest model (the answer); a coarser one gives its discretisation estimate
+        headline = "fine" if "fine" in cfg.models else cfg.models[0]
+        main = results[headline]
         extra = {"title": cfg.title, "synthetic": cfg.synthetic, "subject": cfg.subject or cfg.name,
                  "compare": {k: str(v) for k, v in results.items()}}
-        # issue 18: per-muscle forces and force-length curves of the main model, the DWI fit's QC maps
-        extra.update({k[:-len(f"_{cfg.models[0]}")]: str(v) for k, v in protocols.items()
-                      if k.endswith(f"_{cfg.models[0]}")})
+        # per-muscle forces and force-length curves of the headline model, the DWI fit's QC maps
+        extra.update({k[:-len(f"_{headline}")]: str(v) for k, v in protocols.items() if k.endswith(f"_{headline}")})
         if cfg.segment is not None and getattr(cfg.segment, "dwi", None) is not None:
             extra["dwi_qc"] = str(seg_path.with_name("segmentation_qc"))
         if cfg.params:

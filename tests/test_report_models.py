@@ -63,10 +63,10 @@ def test_both_models_in_every_output(two_models):
         header = next(csv.reader(fh))
     assert "end_force coarse [N]" in header and "end_force fine [N]" in header
     for f in ("force_activation.csv", "tissue_table.csv", "summary.json", "fields.pvd", "slices_displacement.png"):
-        assert (rep / "fine" / f).is_file(), f
+        assert (rep / "coarse" / f).is_file(), f
     assert (rep / "fields.pvd").is_file() and (rep / "slices_displacement.png").is_file()
     page = (rep / "index.html").read_text()
-    assert "Models compared" in page and "Tissue volumes — fine model" in page and "fine model: " in page
+    assert "Models compared" in page and "Tissue volumes — coarse model" in page and "coarse model: " in page
     assert s["outputs"]["convergence_csv"].endswith("convergence.csv")
 
 
@@ -89,6 +89,42 @@ def test_difference_table_recomputed_from_the_results_files(two_models):
         assert row[3] == pytest.approx(fc[j] - ff[i], rel=1e-9, abs=1e-9)
     with open(two_models / "report" / "convergence.csv") as fh:
         assert len(list(csv.reader(fh))) == len(conv["rows"]) + 1
+
+
+def test_the_finest_model_is_the_headline_with_its_discretisation_estimate(two_models):
+    """Config order "coarse, fine": the report's answer is still the fine model, and the difference to the
+    coarse one is shown as its discretisation estimate, first in summary.json and on the page's first screen."""
+    rep = two_models / "report"
+    s = json.loads((rep / "summary.json").read_text())
+    ac, fc, cc = _end_force(two_models / "results_coarse.h5")
+    af, ff, cf = _end_force(two_models / "results_fine.h5")
+    fine, coarse = ff[cf].max(), fc[cc].max()
+    assert s["F_max_N"] == pytest.approx(fine, rel=1e-9)
+    assert s["results"].endswith("results_fine.h5") and s["n_nodes"] == s["models"]["fine"]["n_nodes"]
+    est = s["discretisation"]
+    assert est["headline"] == "fine" and est["headline_is_finest"] and est["compared_with"] == "coarse"
+    assert est["difference_N"] == pytest.approx(fine - coarse, rel=1e-9)
+    assert est["relative"] == pytest.approx((fine - coarse) / fine, rel=1e-9)
+    assert est["large"] == (abs(fine - coarse) > 0.02 * fine)
+    assert est["large"] == any(w.startswith("discretisation estimate") for w in s["warnings"])
+    keys = list(s)
+    assert keys.index("F_max_N") < keys.index("discretisation") < keys.index("curve")
+    first = (rep / "index.html").read_text().split("<h2>", 1)[0]
+    assert "Headline: the fine model" in first and "discretisation estimate" in first
+    assert ("larger than 2 %" in first) == est["large"]
+
+
+def test_discretisation_estimate_warns_above_two_percent():
+    from pixmuscle.report.convergence import discretisation_estimate
+
+    a = np.array([0.0, 1.0])
+    conv = convergence_table({"c": (a, [0.0, 103.0], [True] * 2), "f": (a, [0.0, 100.0], [True] * 2)}, {"c": 10, "f": 80})
+    est = discretisation_estimate(conv, "f", {"c": 10, "f": 80})
+    assert est["relative"] == pytest.approx(-0.03) and est["large"] and est["headline_is_finest"]
+    conv = convergence_table({"c": (a, [0.0, 101.0], [True] * 2), "f": (a, [0.0, 100.0], [True] * 2)}, {"c": 10, "f": 80})
+    assert not discretisation_estimate(conv, "f", {"c": 10, "f": 80})["large"]
+    coarse = discretisation_estimate(conv, "c", {"c": 10, "f": 80})
+    assert not coarse["headline_is_finest"] and coarse["compared_with"] is None
 
 
 def test_force_at_interpolates_between_converged_states_only():

@@ -125,4 +125,46 @@ def convergence_table(curves: Mapping[str, tuple], n_nodes: Mapping[str, int]) -
             "max_relative_difference": worst, "header": header, "rows": rows}
 
 
-__all__ = ["convergence_table", "force_at", "f_max"]
+#: a discretisation estimate of F_max larger than this (relative) is worth a plain warning
+ESTIMATE_WARN = 0.02
+
+
+def discretisation_estimate(conv: Mapping, headline: str, n_nodes: Mapping[str, int],
+                            warn_above: float = ESTIMATE_WARN) -> dict:
+    """The headline model's F_max with the difference to the next coarser model as its
+    discretisation estimate.
+
+    Parameters
+    ----------
+    conv : mapping
+        Output of :func:`convergence_table`.
+    headline : str
+        Label of the model whose numbers the report shows first.
+    n_nodes : mapping label → int
+    warn_above : float
+        Relative estimate above which ``large`` is true.
+
+    Returns
+    -------
+    dict with ``headline``, ``finest`` (labels), ``headline_is_finest``, ``F_max_N`` (headline's),
+    ``compared_with`` (label of the next coarser model, or None), ``compared_F_max_N``,
+    ``difference_N`` (F_max of the headline − F_max of the coarser, N), ``relative`` (that over
+    |F_max of the headline|), ``threshold`` and ``large`` (|relative| > threshold).
+    """
+    fmax = conv["F_max_N"]
+    finest = conv["reference"]
+    nh = int(n_nodes.get(headline, 0))
+    coarser = [k for k in fmax if k != headline and int(n_nodes.get(k, 0)) < nh]
+    other = max(coarser, key=lambda k: (int(n_nodes.get(k, 0)), k)) if coarser else None
+    out = {"headline": headline, "finest": finest, "headline_is_finest": headline == finest,
+           "F_max_N": fmax.get(headline), "compared_with": other, "compared_F_max_N": None, "difference_N": None,
+           "relative": None, "threshold": float(warn_above), "large": False}
+    if other is not None and fmax.get(headline) is not None and fmax.get(other) is not None:
+        d = fmax[headline] - fmax[other]
+        rel = d / abs(fmax[headline]) if fmax[headline] else None
+        out.update(compared_F_max_N=fmax[other], difference_N=float(d), relative=rel,
+                   large=bool(rel is not None and abs(rel) > warn_above))
+    return out
+
+
+__all__ = ["convergence_table", "discretisation_estimate", "force_at", "f_max"]

@@ -39,6 +39,10 @@ from .report_protocols import protocol_sections
 
 _LOG = logging.getLogger(__name__)
 
+#: keys that open summary.json: what the case is and its answer (the finest model's), then the rest
+FIRST_KEYS = ("title", "label", "status", "synthetic", "F_max_N", "alpha_at_F_max", "discretisation",
+              "force_per_volume_N_per_cm3", "force_per_muscle_volume_N_per_cm3", "n_nodes", "warnings")
+
 
 def _versions() -> dict:
     import h5py
@@ -159,6 +163,7 @@ def _write_report(res, results_path: Path, outdir: Path, final: Path, cfg: Repor
         text = report_page(summary, figures, tissue=tissue, report_config=_plain(cfg),
                            sections=model_parts + list(sections))
         (outdir / "index.html").write_text(text, encoding="utf-8")
+    summary = {**{k: summary[k] for k in FIRST_KEYS if k in summary}, **summary}  # the headline first
     (outdir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary
 
@@ -191,7 +196,7 @@ def _models(res, summary: dict, tissue: dict, others: dict, outdir: Path, final:
     """Outputs of the other models (``<label>/``: force_activation.csv, tissue_table.csv, fields,
     slice figures, summary.json), their end force added to the main CSV rows, ``summary["models"]``
     and ``summary["convergence"]`` (+ ``convergence.csv``); returns the page's HTML fragment."""
-    from ..report.convergence import convergence_table, force_at
+    from ..report.convergence import convergence_table, discretisation_estimate, force_at
     from ..report.html import models_section
 
     main = others.pop(None)
@@ -235,8 +240,17 @@ def _models(res, summary: dict, tissue: dict, others: dict, outdir: Path, final:
         header.append(f"end_force {label} [N]")
         for row, v in zip(rows, f, strict=True):
             row.append(C._cell(v))
-    conv = convergence_table(curves, {k: v["n_nodes"] for k, v in per_model.items()})
+    nodes = {k: v["n_nodes"] for k, v in per_model.items()}
+    conv = convergence_table(curves, nodes)
     summary["convergence"] = conv
+    est = summary["discretisation"] = discretisation_estimate(conv, main, nodes)
+    if not est["headline_is_finest"]:
+        warnings.append(f"the report's headline is the {main} model, not the finest ({est['finest']}): "
+                        "its numbers are the less resolved ones")
+    if est["large"]:
+        warnings.append(f"discretisation estimate: F_max of the {main} model differs by {100 * est['relative']:+.2g} % "
+                        f"from the {est['compared_with']} model's (more than {100 * est['threshold']:g} %): the force "
+                        "still depends on the resolution; a finer model would change it further")
     summary["models"] = per_model
     summary["outputs"]["convergence_csv"] = str(C.write_csv(outdir / "convergence.csv", conv["header"], conv["rows"]))
     def reroot(v):
@@ -266,7 +280,7 @@ def _fields(res, cfg: ReportConfig, tissue: dict, outdir: Path, warnings: list, 
     """VTU/XDMF series; time = α, or the prescribed displacement (cm) of a displacement-driven run
     (``displacement``: per state), or the step number when that does not increase."""
     from ..progress import progress
-    from ..report.fields import vtu_steps, write_vtu_series
+    from ..report.fields import corner_displacements, vtu_steps, write_vtu_series
 
     m = res.model
     steps = vtu_steps(res.converged, cfg.every_nth_step)
@@ -276,12 +290,23 @@ def _fields(res, cfg: ReportConfig, tissue: dict, outdir: Path, warnings: list, 
     if not increasing:
         warnings.append(f"{'α' if displacement is None else 'the prescribed displacement'} does not increase over "
                         "the exported steps: fields.pvd uses the step number as time")
+    def point_u(points, hexa):  # the RK field at the cell corners, or no point data (a warning says why)
+        try:
+            u, n_fallback = corner_displacements(res, steps, points, hexa)
+        except InputError as exc:
+            warnings.append(f"ParaView files: displacement as cell data only, no point data ({exc})")
+            return None
+        if n_fallback:
+            warnings.append(f"ParaView files: at {n_fallback} of {points.shape[0]} cell corners the RK field is not "
+                            "defined (thin features); the point displacement there is the mean of the adjacent cells")
+        return u
+
     with progress(len(steps), "writing fields") as bar:
         written = write_vtu_series(outdir, steps, times, res.step, ijk=m.ijk, origin=m.origin, spacing=m.spacing,
                                    fiber=m.fiber, tissue=m.tissue, muscle_id=m.muscle_id,
                                    muscle_names=m.muscle_names, imat=tissue["imat_mask"],
                                    rotation=m.rotation if cfg.vtu_frame == "rotated" else None,
-                                   compression=cfg.vtu_compression, xdmf=cfg.xdmf, progress=bar)
+                                   compression=cfg.vtu_compression, xdmf=cfg.xdmf, point_u=point_u, progress=bar)
     out = {"fields_pvd": str(written["pvd"]), "vtu": [str(p) for p in written["vtu"]],
            "vtu_steps": [int(s) for s in steps]}
     if written["xdmf"] is not None:
