@@ -7,7 +7,7 @@ hexahedra, so ParaView's Slice, Clip, Threshold and Contour return pieces of the
 plane. Nodal values are **cell data** (one value per node = per cell). The displacement is also
 **point data**: at every cell corner x the model's own field there, the RK approximation
 u(x) = Σ_J Ψ_J(x) d_J with the solve's shape functions and coefficients (:func:`corner_displacements`),
-for *Warp By Vector* — held ends stay where the penalty holds them. Stresses are cell data only:
+for *Warp By Vector* — held ends stay where the penalty holds them (the end-face centres). Stresses are cell data only:
 the model's stress is the smoothed (SCNI) stress of each integration cell, with a material that
 changes from cell to cell; ParaView's *Cell Data to Point Data* smooths it for colouring. The
 field-data array ``notes`` says so in the files. Coordinates are the **reference** configuration, cm.
