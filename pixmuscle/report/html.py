@@ -92,8 +92,9 @@ def discretisation_box(est: Mapping[str, Any]) -> str:
     f, other = est.get("F_max_N"), est.get("compared_with")
     text = f"<b>Headline: the {esc(est['headline'])} model</b> (F_max {esc(fmt(f))} N)"
     if other is not None and est.get("relative") is not None:
-        text += (f"; discretisation estimate: {100 * est['relative']:+.2g} % ({esc(fmt(est['difference_N']))} N) against the "
-                 f"{esc(other)} model's F_max of {esc(fmt(est['compared_F_max_N']))} N.")
+        h, o = esc(est["headline"]), esc(other)
+        text += (f"; discretisation estimate (F_{h} − F_{o}) / F_{h} = {100 * est['relative']:+.2g} % "
+                 f"({est['difference_N']:+.4g} N; the {o} model gives {esc(fmt(est['compared_F_max_N']))} N).")
     else:
         text += "."
     warn = []
