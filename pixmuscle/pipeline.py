@@ -5,7 +5,9 @@ Root YAML keys (all optional except what the chosen stages need)::
     title: text shown in reports
     synthetic: true          # inputs are synthetic phantoms (said plainly in the report)
     output_dir: out/demo     # relative to the config file; default out/<config stem>
-    models: [coarse]         # which models to solve: fine, coarse or both (convergence check)
+    models: [coarse]         # which models to solve: fine, coarse or both (convergence check: the
+                             # report's headline is then the fine model, the coarse one its
+                             # discretisation estimate)
     segment: {...}           # pixmuscle.segmentation.config.SegmentConfig (omit to start from labels)
     build_model: {...}       # pixmuscle.model.config.BuildModelConfig
     coarsen: {...}           # pixmuscle.model.config.CoarsenConfig
