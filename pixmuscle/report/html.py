@@ -377,8 +377,9 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
         parts.append(f'<p class="foot">ParaView: open <code>fields.pvd</code> (time = {clock}) '
                      "or <code>fields.xdmf</code>. The files hold the model's voxel cells "
                      "(reference configuration, cm): Slice, Clip and Threshold return cells; apply <i>Warp By Vector</i> "
-                     "with <code>displacement [cm]</code> for the deformed body. Units and the tissue and muscle names "
-                     "are in the field data.</p>")
+                     "with <code>displacement [cm]</code> for the deformed body: its point data is the model's own "
+                     "field at the cell corners (the RK approximation Σ Ψ_J(x) d_J); stresses are cell data (each "
+                     "node's cell). Units, the tissue and muscle names and these notes are in the field data.</p>")
 
     parts.extend(sections)
 
