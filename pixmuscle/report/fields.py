@@ -6,11 +6,12 @@ centred on it (docs/architecture.md, "Model frame"); the files hold exactly thes
 hexahedra, so ParaView's Slice, Clip, Threshold and Contour return pieces of the body at any
 plane. Nodal values are **cell data** (one value per node = per cell). The displacement is also
 **point data**: at every cell corner x the model's own field there, the RK approximation
-u(x) = Σ_J Ψ_J(x) d_J with the solve's shape functions and coefficients (:func:`corner_displacements`),
-for *Warp By Vector* — held ends stay where the penalty holds them (the end-face centres). Stresses are cell data only:
-the model's stress is the smoothed (SCNI) stress of each integration cell, with a material that
-changes from cell to cell; ParaView's *Cell Data to Point Data* smooths it for colouring. The
-field-data array ``notes`` says so in the files. Coordinates are the **reference** configuration, cm.
+u(x) = Σ_J Ψ_J(x) d_J with the solve's shape functions and coefficients
+(:func:`corner_displacements`), for *Warp By Vector*: held ends stay where the penalty holds
+them (at the end-face centres). Stresses are cell data only: the model's stress is the smoothed
+(SCNI) stress of each integration cell, with a material that changes from cell to cell;
+ParaView's *Cell Data to Point Data* smooths it for colouring. The field-data array ``notes``
+says so in the files. Coordinates are the **reference** configuration, cm.
 
 Arrays (units in the names and in the field-data array ``units``):
 
