@@ -8,7 +8,8 @@ up to date. The runners (:mod:`pixmuscle.runners.serial`, :mod:`pixmuscle.runner
 where and in which order stages execute; nothing here knows about them.
 
 A stage is skipped when its output exists, has the right schema and version, and its provenance
-records the same config-section hash and the same SHA-256 for every input file.
+records the same config-section hash and the same SHA-256 for every input file. A solve whose
+checkpoint (:mod:`pixmuscle.io.checkpoint`) lies beside its output was interrupted and always runs.
 """
 
 from __future__ import annotations
@@ -111,6 +112,11 @@ def is_up_to_date(stage: Stage) -> bool:
     """True when ``stage`` would be skipped (its output matches its config and inputs)."""
     if stage.schema is None:
         return False
+    if stage.kind == "solve":
+        from .io.checkpoint import checkpoint_path
+
+        if checkpoint_path(stage.output).exists():  # a solve was interrupted here: run it (it resumes)
+            return False
     schema, version = stage.schema
     return up_to_date(stage.output, schema, version, stage.config, [p for p in stage.inputs if p.is_file()])
 

@@ -308,10 +308,24 @@ class StepRecord:
     iterations: int
     cutbacks: int
     rows: list
+    #: (Δd (N, 3) cm, Δt) of the last converged increment up to this step (None: none yet); the
+    #: predictor of the next increment extrapolates it, so a resumed solve needs it
+    increment: tuple | None = None
+
+
+@dataclasses.dataclass
+class SavedState:
+    """What a checkpoint keeps of a converged state: coefficients d (N, 3) cm, load factor t and α
+    exactly as the state was evaluated (``system.evaluate(d, t, alpha)`` rebuilds the rest)."""
+
+    d: np.ndarray
+    t: float
+    alpha: float
 
 
 def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: NewtonConfig, linsolver, *,
-               on_step: Callable[[StepRecord], None] | None = None, d0: np.ndarray | None = None) -> list[StepRecord]:
+               on_step: Callable[[StepRecord], None] | None = None, d0: np.ndarray | None = None,
+               resume: list[StepRecord] | None = None) -> list[StepRecord]:
     """Incremental loading over ``n_steps`` steps with cutback.
 
     Step k (k = 0..n_steps) reaches load factor t_k = k / n_steps and activation
@@ -325,11 +339,16 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
         See the module docstring (needs ``n_nodes``).
     on_step : callable, optional
         Called with each converged :class:`StepRecord` (progress display, storage).
+    resume : list of StepRecord, optional
+        Converged steps 0..k of an interrupted run of the same system (a checkpoint): loading
+        continues with step k + 1 from the last one's state (its ``state`` needs ``d``, ``t`` and
+        ``alpha``; a full evaluated state is used as it is) and ``increment``, exactly as the
+        uninterrupted run would have. ``on_step`` is not called for them.
 
     Returns
     -------
     list of StepRecord
-        One per step, 0..n_steps.
+        One per step, 0..n_steps (the resumed ones first).
 
     Raises
     ------
@@ -349,7 +368,14 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
     # stress makes the tangent indefinite, and the converged state's tangent starts the increment instead.
     passive_ramp = alpha_from == alpha_to
     last = None  # (increment of d, increment of t) of the last converged increment
-    for k in range(n_steps + 1):
+    if resume:
+        records = list(resume)
+        prev = records[-1]
+        d, t_done, last = np.asarray(prev.state.d, float).copy(), float(prev.state.t), prev.increment
+        conv = prev.state if hasattr(prev.state, "r") else None
+        if conv is None and not passive_ramp:
+            conv = system.evaluate(d, t_done, prev.state.alpha)
+    for k in range(len(records), n_steps + 1):
         t_target = k / n_steps
         dt = t_target - t_done
         cut = 0
@@ -394,7 +420,8 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
                 exc.rows = rows
                 raise exc
             dt /= 2.0
-        rec = StepRecord(step=k, t=t_target, alpha=alpha_of(t_target), state=state, iterations=iters, cutbacks=cut, rows=rows)
+        rec = StepRecord(step=k, t=t_target, alpha=alpha_of(t_target), state=state, iterations=iters, cutbacks=cut, rows=rows,
+                         increment=last)
         records.append(rec)
         if on_step is not None:
             on_step(rec)

@@ -421,7 +421,8 @@ def constraint_gap(steps: list[dict], h_min: float) -> dict[str, dict]:
     return out
 
 
-def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activation=None) -> Results:
+def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activation=None, *,
+          resume: list | None = None, on_checkpoint=None) -> Results:
     """Solve the finite-strain equilibrium of a pixel-point model over the load steps.
 
     Parameters
@@ -435,6 +436,13 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
         Per-node α at the start and end of the ramp (:mod:`.activation`); default: built from
         ``cfg.activation`` (numbers or per-muscle mappings; an image needs the stage layer).
         ``/steps/alpha`` then holds the mean α of the muscle nodes.
+    resume : list of :class:`~.newton.StepRecord`, optional
+        Converged steps 0..k of an interrupted solve of this model and configuration (a
+        checkpoint, states as :class:`~.newton.SavedState`): their records are rebuilt from d and
+        loading continues at step k + 1 exactly as the uninterrupted solve would have.
+    on_checkpoint : callable, optional
+        Called after each converged step with the list of all converged
+        :class:`~.newton.StepRecord` so far (the stage writes them to a checkpoint file).
 
     Returns
     -------
@@ -483,7 +491,9 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
             lin_time["iterations"].append(linsolver.info["iterations"])
             return x
 
-    def on_step(rec):
+    done: list = []
+
+    def on_step(rec, replay=False):
         st = rec.state
         steps.append(dict(
             alpha=rec.alpha if activation is None else activation.mean(rec.alpha), t=rec.t, iterations=rec.iterations, cutbacks=rec.cutbacks, d=st.d.copy(),
@@ -493,7 +503,10 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
         steps[-1]["max_principal"] = max_principal(steps[-1]["cauchy"])
         steps[-1]["gaps"] = system.constraints.gaps(st.d, rec.t, steps[-1]["u"])
         last_rel = rec.rows[-1].relative_residual if rec.rows else 0.0
-        _LOG.info("load step %d of %d: α = %.4g, load factor %.4g, %d Newton iterations, %d cutbacks, relative residual %.2e",
+        done.append(dataclasses.replace(rec, state=_newton.SavedState(st.d, st.t, st.alpha)))  # no F, P, A kept
+        if on_checkpoint is not None and not replay:
+            on_checkpoint(done)
+        _LOG.log(logging.DEBUG if replay else logging.INFO, "load step %d of %d: α = %.4g, load factor %.4g, %d Newton iterations, %d cutbacks, relative residual %.2e",
                   rec.step, cfg.steps, steps[-1]["alpha"], rec.t, rec.iterations, rec.cutbacks, last_rel)
         if progress is not None:
             last = rec.rows[-1].relative_residual if rec.rows else 0.0
@@ -506,7 +519,12 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
     error = None
     try:
         ramp = (cfg.alpha_from, cfg.alpha_to) if activation is None else (0.0, 1.0)
-        _newton.load_steps(system, cfg.steps, *ramp, cfg.newton, _Timed(), on_step=on_step)
+        for rec in resume or ():  # the converged steps of the interrupted run, rebuilt from their d
+            st = rec.state
+            on_step(dataclasses.replace(rec, state=system.evaluate(np.asarray(st.d, float), st.t, st.alpha)), replay=True)
+        if done:
+            info["resumed_after_step"] = len(done) - 1
+        _newton.load_steps(system, cfg.steps, *ramp, cfg.newton, _Timed(), on_step=on_step, resume=done or None)
     except SolverError as exc:
         status = f"failed: {exc}"
         error = exc

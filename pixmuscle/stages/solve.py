@@ -9,8 +9,9 @@ from typing import Any
 
 from .. import parallel
 from ..config import parse_section
-from ..errors import InputError, SolverError
+from ..errors import InputError, OutputError, PixmuscleError, SolverError
 from ..imaging.nifti import load_volume
+from ..io.checkpoint import checkpoint_key, checkpoint_path, load_checkpoint, save_checkpoint
 from ..io.lineage import capture_warnings, stage_attrs
 from ..io.model import load_model
 from ..io.results import save_results
@@ -55,6 +56,46 @@ def _describe(cfg: SolveConfig, ramp: ActivationRamp | None, model) -> str:
     return ", ".join(f"{k} {a:.3g} → {b:.3g}" for k, (a, b) in per.items()) or "none (no muscle nodes)"
 
 
+def _resume(path: Path, key: str, n_steps: int) -> list | None:
+    """The converged steps of an interrupted solve from its checkpoint, or None (none, unreadable, or
+    made by another model or configuration: logged and not used)."""
+    if not path.exists():
+        return None
+    try:
+        ckpt = load_checkpoint(path)
+    except (PixmuscleError, OSError) as exc:
+        _LOG.warning("ignoring the checkpoint %s: it cannot be read (%s); solving from the start", path, exc)
+        return None
+    if ckpt.key != key or ckpt.n_steps != n_steps:
+        _LOG.warning("ignoring the checkpoint %s: it was made with another model file or solve configuration; "
+                     "solving from the start", path)
+        return None
+    if not ckpt.records:
+        return None
+    k = ckpt.records[-1].step
+    _LOG.info("resuming from load step %d of %d, checkpoint %s", k, n_steps, path)
+    return ckpt.records
+
+
+class _Checkpointer:
+    """Writes the converged steps after each step; a refused write is logged once and checkpoints stop."""
+
+    def __init__(self, path: Path, key: str, n_steps: int):
+        self.path, self.key, self.n_steps, self.on = path, key, n_steps, True
+
+    def __call__(self, records) -> None:
+        if not self.on:
+            return
+        try:
+            save_checkpoint(self.path, records, key=self.key, n_steps=self.n_steps)
+        except OutputError as exc:
+            self.on = False
+            _LOG.warning("cannot write the checkpoint (%s); the solve goes on without one", exc)
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+
 def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_path: str | Path, progress: Any = None, *,
               synthetic: bool = False) -> Path:
     """Solve a model file and write the results file.
@@ -85,6 +126,14 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
     SolverError
         A load step failed after all cutbacks. The results file is still written, with the
         converged steps and ``status = "failed: ..."``, before the error is raised.
+
+    Notes
+    -----
+    Each converged load step is written to the checkpoint ``<out_path>.checkpoint``
+    (:mod:`pixmuscle.io.checkpoint`). When the solve is killed, the same call resumes after the
+    last converged step, if the checkpoint was made from the same model file(s), ``solve``
+    section and package version (else it is ignored, with a warning). The checkpoint is removed
+    once the results file is written, or when a load step fails (the same call would fail again).
     """
     if cfg is None:
         raise InputError("solve: the configuration has no `solve` section")
@@ -108,12 +157,18 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
         root = parallel.rank() == 0  # under mpiexec only rank 0 shows progress and writes the results
         if not root:
             progress = False
+        # converged steps are checkpointed beside the results so that a killed solve resumes where it
+        # was (not under mpiexec: there every rank would have to agree on the checkpoint)
+        keep = None
+        if parallel.size() == 1:
+            keep = _Checkpointer(checkpoint_path(out_path), checkpoint_key(cfg, inputs), cfg.steps)
+        kw = dict(activation=ramp, resume=keep and _resume(keep.path, keep.key, cfg.steps), on_checkpoint=keep)
         try:
             if progress is None:
                 with _progress(cfg.steps + 1, "load step") as bar, newton_feed(bar):
-                    results = solve(model, cfg, progress=bar, activation=ramp)
+                    results = solve(model, cfg, progress=bar, **kw)
             else:
-                results = solve(model, cfg, progress=progress or None, activation=ramp)
+                results = solve(model, cfg, progress=progress or None, **kw)
         except SolverError as exc:
             partial = getattr(exc, "results", None)
             if partial is not None and root:
@@ -121,12 +176,16 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
                 save_results(out_path, partial, config=cfg, inputs=inputs,
                              attrs=stage_attrs("solve", inputs, warnings, synthetic=synthetic))
                 _LOG.error("solve failed; converged steps written to %s (status: %s)", out_path, partial.status)
+            if keep is not None:  # the same command would fail the same way: nothing to resume
+                keep.remove()
             raise
     if not root:
         return Path(out_path)
     results.info["activation"] = _per_muscle(cfg, ramp, model)
     save_results(out_path, results, config=cfg, inputs=inputs,
                  attrs=stage_attrs("solve", inputs, warnings, synthetic=synthetic))
+    if keep is not None:
+        keep.remove()
     info = results.info
     _LOG.info("solve: done in %.1f s (build %.1f s, %d assemblies %.1f s, linear solves %.1f s)", info.get("total_s", 0.0),
               info.get("build_s", 0.0), info.get("n_assembly", 0), info.get("assembly_s", 0.0),

@@ -1,0 +1,145 @@
+"""Checkpoint and resume of a solve: a real SIGKILL half-way, the same command again, the forces of
+the uninterrupted run to 1e-10; a checkpoint of another configuration is never used."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+
+from pixmuscle.config import parse_section
+from pixmuscle.io.checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
+from pixmuscle.io.model import save_model
+from pixmuscle.io.results import load_results
+from pixmuscle.mechanics.config import SolveConfig
+from pixmuscle.mechanics.solve import solve
+from pixmuscle.plan import Stage, is_up_to_date
+from pixmuscle.stages.solve import run_solve
+from pixmuscle.verify.mechanics import mask_model
+
+STEPS = 6
+BCS = [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]}]
+ACTIVE = {"steps": STEPS, "activation": {"from": 0.0, "to": 0.6}, "boundary_conditions": BCS}
+#: a displacement-driven ramp: the predictor extrapolates the last converged increment
+PASSIVE = {"steps": 4, "activation": {"from": 0.2, "to": 0.2},
+           "boundary_conditions": [BCS[0], {"nodes": "z_max", "fix": ["x", "y"], "displace": {"z": 0.3}}]}
+
+
+def _model():
+    return mask_model(np.ones((4, 4, 8), bool), (0.2, 0.2, 0.3), tissue=1)  # 128 muscle nodes
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    d = tmp_path_factory.mktemp("ckpt")
+    save_model(d / "model.h5", _model())
+    (d / "c.yaml").write_text(yaml.safe_dump({"solve": ACTIVE}))
+    run_solve(d / "model.h5", ACTIVE, d / "full.h5", progress=False)
+    return d
+
+
+def _rel(a, b) -> float:
+    return float(np.max(np.abs(np.asarray(a) - np.asarray(b))) / np.max(np.abs(np.asarray(b))))
+
+
+def test_killed_solve_resumes_with_the_uninterrupted_forces(case):
+    d = case
+    out, ckpt = d / "r.h5", checkpoint_path(d / "r.h5")
+    cmd = [sys.executable, "-m", "pixmuscle.cli", "solve", str(d / "model.h5"), "-c", str(d / "c.yaml"), "-o", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        done = 0
+        deadline = time.monotonic() + 120
+        while done < 3 and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+            try:
+                with h5py.File(ckpt, "r") as f:
+                    done = int(f.attrs["converged_steps"])
+            except (OSError, KeyError):
+                pass
+        assert proc.poll() is None, "the solve ended before it could be killed"
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    assert not out.exists() and ckpt.exists()
+    k = load_checkpoint(ckpt).records[-1].step
+    assert 2 <= k < STEPS
+
+    again = subprocess.run(cmd, capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr
+    assert f"resuming from load step {k} of {STEPS}, checkpoint {ckpt}" in again.stderr
+    assert not ckpt.exists()  # removed after the results were written
+    res, full = load_results(out, lazy=False), load_results(d / "full.h5", lazy=False)
+    assert res.status == "complete" and res.info["resumed_after_step"] == k
+    assert len(res.alpha) == STEPS + 1
+    np.testing.assert_array_equal(res.alpha, full.alpha)
+    np.testing.assert_array_equal(res.iterations, full.iterations)
+    for name in full.reaction:  # every step's force
+        assert _rel(res.reaction[name], full.reaction[name]) < 1e-10, name
+    assert _rel(res.d, full.d) < 1e-10
+    np.testing.assert_array_equal(res.newton["step"], full.newton["step"])
+
+
+def test_interrupted_solve_is_not_up_to_date(case):
+    d = case
+    cfg = parse_section(SolveConfig, ACTIVE, "solve")
+    stage = Stage("solve", "solve", "pixmuscle.stages.solve:run_solve", {}, d / "full.h5", cfg, (d / "model.h5",))
+    assert is_up_to_date(stage)
+    ckpt = checkpoint_path(d / "full.h5")
+    ckpt.write_bytes(b"")
+    try:
+        assert not is_up_to_date(stage)
+    finally:
+        ckpt.unlink()
+
+
+def test_checkpoint_of_another_config_is_ignored(case, caplog):
+    d = case
+    full = load_results(d / "full.h5", lazy=False)
+    out = d / "other.h5"
+    ckpt = checkpoint_path(out)
+    recs = []
+    cfg = parse_section(SolveConfig, ACTIVE, "solve")
+    solve(_model(), cfg, on_checkpoint=lambda r: recs.append(list(r)))
+    for rec in recs[3]:  # states that would change every force if they were used
+        rec.state.d = rec.state.d + 0.05
+    save_checkpoint(ckpt, recs[3], key="0" * 64, n_steps=STEPS)
+    with caplog.at_level(logging.INFO, logger="pixmuscle"):
+        run_solve(d / "model.h5", ACTIVE, out, progress=False)
+    assert f"ignoring the checkpoint {ckpt}: it was made with another model file or solve configuration" in caplog.text
+    assert "resuming" not in caplog.text
+    res = load_results(out, lazy=False)
+    assert "resumed_after_step" not in res.info and not ckpt.exists()
+    for name in full.reaction:
+        np.testing.assert_array_equal(res.reaction[name], full.reaction[name])
+
+
+@pytest.mark.parametrize("backend", ["direct", "cg_amg"])
+@pytest.mark.parametrize("ramp", ["active", "passive"])
+def test_resume_from_a_checkpoint_file_matches(tmp_path, backend, ramp):
+    raw = dict(ACTIVE if ramp == "active" else PASSIVE, solver={"backend": backend})
+    cfg = parse_section(SolveConfig, raw, "solve")
+    model = _model()
+    recs = []
+    full = solve(model, cfg, on_checkpoint=lambda r: recs.append(list(r)))
+    save_checkpoint(tmp_path / "c", recs[2], key="k", n_steps=cfg.steps)
+    ck = load_checkpoint(tmp_path / "c")
+    assert ck.records[-1].step == 2 and (ck.records[-1].increment is not None)
+    res = solve(model, cfg, resume=ck.records)
+    assert res.info["resumed_after_step"] == 2
+    np.testing.assert_array_equal(res.iterations[:3], full.iterations[:3])
+    for name in full.reaction:
+        assert _rel(res.reaction[name], full.reaction[name]) < 1e-10, name
+    assert _rel(res.cauchy, full.cauchy) < 1e-10
