@@ -20,6 +20,7 @@ from pixmuscle.io.checkpoint import checkpoint_path, load_checkpoint, save_check
 from pixmuscle.io.model import save_model
 from pixmuscle.io.results import load_results
 from pixmuscle.mechanics.config import SolveConfig
+from pixmuscle.mechanics.newton import SavedState, StepRecord
 from pixmuscle.mechanics.solve import solve
 from pixmuscle.plan import Stage, is_up_to_date
 from pixmuscle.stages.solve import run_solve
@@ -30,7 +31,7 @@ BCS = [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x
 ACTIVE = {"steps": STEPS, "activation": {"from": 0.0, "to": 0.6}, "boundary_conditions": BCS}
 #: a displacement-driven ramp: the predictor extrapolates the last converged increment
 PASSIVE = {"steps": 4, "activation": {"from": 0.2, "to": 0.2},
-           "boundary_conditions": [BCS[0], {"nodes": "z_max", "fix": ["x", "y"], "displace": {"z": 0.3}}]}
+           "boundary_conditions": [BCS[0], {"nodes": "z_max", "fix": ["x", "y"], "displace": {"z": 0.15}}]}
 
 
 def _model():
@@ -110,12 +111,11 @@ def test_checkpoint_of_another_config_is_ignored(case, caplog):
     full = load_results(d / "full.h5", lazy=False)
     out = d / "other.h5"
     ckpt = checkpoint_path(out)
-    recs = []
-    cfg = parse_section(SolveConfig, ACTIVE, "solve")
-    solve(_model(), cfg, on_checkpoint=lambda r: recs.append(list(r)))
-    for rec in recs[3]:  # states that would change every force if they were used
-        rec.state.d = rec.state.d + 0.05
-    save_checkpoint(ckpt, recs[3], key="0" * 64, n_steps=STEPS)
+    # converged steps 0..2 whose states would change every force if they were used
+    recs = [StepRecord(step=k, t=k / STEPS, alpha=0.6 * k / STEPS, iterations=1, cutbacks=0, rows=[],
+                       state=SavedState(full.d[k] + 0.01, k / STEPS, 0.6 * k / STEPS)) for k in range(3)]
+    recs[-1].increment = (full.d[2] - full.d[1], 1 / STEPS)
+    save_checkpoint(ckpt, recs, key="0" * 64, n_steps=STEPS)
     with caplog.at_level(logging.INFO, logger="pixmuscle"):
         run_solve(d / "model.h5", ACTIVE, out, progress=False)
     assert f"ignoring the checkpoint {ckpt}: it was made with another model file or solve configuration" in caplog.text
@@ -129,17 +129,18 @@ def test_checkpoint_of_another_config_is_ignored(case, caplog):
 @pytest.mark.parametrize("backend", ["direct", "cg_amg"])
 @pytest.mark.parametrize("ramp", ["active", "passive"])
 def test_resume_from_a_checkpoint_file_matches(tmp_path, backend, ramp):
-    raw = dict(ACTIVE if ramp == "active" else PASSIVE, solver={"backend": backend})
+    """Both ways of starting an increment (converged tangent; extrapolated last increment), both backends."""
+    raw = dict(ACTIVE if ramp == "active" else PASSIVE, steps=3, solver={"backend": backend})
     cfg = parse_section(SolveConfig, raw, "solve")
-    model = _model()
+    model = mask_model(np.ones((3, 3, 4), bool), (0.2, 0.2, 0.3), tissue=1)  # 36 nodes
     recs = []
     full = solve(model, cfg, on_checkpoint=lambda r: recs.append(list(r)))
-    save_checkpoint(tmp_path / "c", recs[2], key="k", n_steps=cfg.steps)
+    save_checkpoint(tmp_path / "c", recs[1], key="k", n_steps=cfg.steps)
     ck = load_checkpoint(tmp_path / "c")
-    assert ck.records[-1].step == 2 and (ck.records[-1].increment is not None)
+    assert ck.records[-1].step == 1 and ck.records[-1].increment is not None
     res = solve(model, cfg, resume=ck.records)
-    assert res.info["resumed_after_step"] == 2
-    np.testing.assert_array_equal(res.iterations[:3], full.iterations[:3])
+    assert res.info["resumed_after_step"] == 1
+    np.testing.assert_array_equal(res.iterations, full.iterations)
     for name in full.reaction:
         assert _rel(res.reaction[name], full.reaction[name]) < 1e-10, name
     assert _rel(res.cauchy, full.cauchy) < 1e-10
