@@ -149,3 +149,13 @@ def test_resume_from_a_checkpoint_file_matches(tmp_path, backend, ramp):
     # resumed run starts without: the converged states agree to the Newton tolerance, not bit for bit
     # (measured: forces ≤ 2e-11, nodal stresses ≤ 3.3e-10 relative)
     assert _rel(res.cauchy, full.cauchy) < 1e-8
+
+
+def test_unreadable_checkpoint_is_ignored(tmp_path, caplog):
+    from pixmuscle.stages.solve import _resume
+
+    ckpt = checkpoint_path(tmp_path / "r.h5")
+    ckpt.write_bytes(b"killed while the file system was full")
+    with caplog.at_level(logging.WARNING, logger="pixmuscle"):
+        assert _resume(ckpt, "k", STEPS) is None
+    assert f"ignoring the checkpoint {ckpt}: it cannot be read" in caplog.text
