@@ -41,10 +41,13 @@ import numpy as np
 from .base import BACKENDS, LinearSolver, pcg, register, rigid_body_modes
 from .cg_amg import KrylovAMGSolver, voxel_aggregates
 from .direct import DirectSolver, nested_dissection
+from .fgmres import fgmres
+from .mixed import MixedBlockSolver
 from .petsc import PETScSolver
 
 __all__ = ["LinearSolver", "DirectSolver", "KrylovAMGSolver", "BACKENDS", "register", "make_solver", "pcg",
-           "rigid_body_modes", "voxel_aggregates", "nested_dissection", "AUTO_DIRECT_MAX_DOFS", "PETScSolver"]
+           "rigid_body_modes", "voxel_aggregates", "nested_dissection", "AUTO_DIRECT_MAX_DOFS", "PETScSolver",
+           "MixedBlockSolver", "fgmres"]
 
 # direct up to here: PARDISO + reuse is faster than cg_amg at 11.5k nodes (351 s against 626 s for the
 # benchmark sweep) and slower at 21k (2,244 s against ~1,200 s extrapolated), docs/performance.md
