@@ -34,6 +34,7 @@ e.g. ``75k:cg_amg:1e-2``; such cases are labelled "cg_amg, Newton 0.01" in the t
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import pathlib
@@ -245,7 +246,7 @@ def parse_variant(spec: str) -> tuple[str, tuple[int, int, int] | None, str]:
 
 
 def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol: float = 1e-6,
-                 variants=CONDITIONING_VARIANTS) -> dict:
+                 variants=CONDITIONING_VARIANTS, on_row=None) -> dict:
     """Krylov iterations of one Newton system (first load step, α = 0.095) against near-incompressibility.
 
     Every tissue's bulk modulus K is multiplied by each of ``scales`` (K/μ ≈ 95, 950, 9,500 for the
@@ -253,7 +254,12 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
     the system to ``rtol``. A formulation and solver whose iterations stay flat as K/μ grows are
     robust where the cost of the nearly incompressible tissues comes from. Rows of the shipped
     defaults (:class:`~pixmuscle.mechanics.config.VolumetricConfig`, the backend ``auto`` picks
-    above its direct limit) carry ``"default": true``.
+    above its direct limit) carry ``"default": true``. ``on_row(record)`` is called with the
+    record so far after every row (a long run keeps what it measured).
+
+    The penalty number β of the end and bone constraints is the default one of the paper's tissues
+    (K × 1) in every row: the default β grows with K, and a stiffer penalty slows every iterative
+    solver whatever the tissue, which is not what this measures.
     """
     from pixmuscle.errors import SolverError
     from pixmuscle.mechanics.config import SolveConfig
@@ -262,12 +268,16 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
 
     shipped = SolveConfig()
     rows = []
+    beta = None
     for spec in variants:
         method, patch, backend = parse_variant(spec)
         for scale in scales:
             mats = {k: {"K": v * scale} for k, v in BULK.items()}
             vol = {"method": method} if patch is None else {"method": method, "patch": list(patch)}
             model, cfg = leg_case(size, penalty, materials=mats, volumetric=vol)
+            if beta is None:  # β of the tissues' own K (the first system built at scale 1)
+                beta = build_system(*leg_case(size, penalty, volumetric=vol))[1]["beta"]
+            cfg = dataclasses.replace(cfg, penalty=dataclasses.replace(cfg.penalty, beta=beta))
             system, _ = build_system(model, cfg)
             state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.095)
             solver = make_solver(backend, model.X, ijk=model.ijk, rtol=rtol, maxiter=5000)
@@ -288,8 +298,12 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
                          "krylov_iterations": its, "status": status, "solve_s": round(time.perf_counter() - t, 1),
                          "setup_s": round(setup, 1), "default": bool(default)})
             print(json.dumps(rows[-1]), flush=True)
-    return {"size": size, "nodes": model.n_nodes, "rtol": rtol, "rows": rows, "load_avg": os.getloadavg()[0],
-            "peak_rss_GB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2)}
+            record = {"size": size, "nodes": model.n_nodes, "rtol": rtol, "penalty_beta": beta, "rows": rows,
+                      "load_avg": os.getloadavg()[0],
+                      "peak_rss_GB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2)}
+            if on_row is not None:
+                on_row(record)
+    return record
 
 
 def infsup(size: str, penalty: float | None, patch=(1, 1, 3), held: str = "pressure", dense: bool | None = None,
@@ -515,12 +529,14 @@ def main(argv=None):
     p.add_argument("--patch", default="1,1,3", help="--infsup: patch size in voxels, PX,PY,PZ")
     p.add_argument("--held", default="pressure", choices=("pressure", "displacement"),
                    help="--infsup: the single-node patches of held nodes are pressure unknowns, or stay in K_d")
+    p.add_argument("--thresholds", type=float, nargs="+", default=[1e-3, 1e-2, 5e-2],
+                   help="--infsup: count the eigenvalues below each of these (one LDLᵀ factorisation each)")
     p.add_argument("--variants", nargs="+", default=list(CONDITIONING_VARIANTS),
                    help="--conditioning: VOLUMETRIC[:PATCH]:BACKEND, e.g. projected:2,2,3:mixed_amg")
     args = p.parse_args(argv)
     if args.infsup:  # one row per (size, patch, held) in bench_solve_infsup.json
         patch = tuple(int(x) for x in args.patch.split(","))
-        res = infsup(args.infsup, args.penalty, patch=patch, held=args.held)
+        res = infsup(args.infsup, args.penalty, patch=patch, held=args.held, thresholds=tuple(args.thresholds))
         res.update(command=".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv), load_avg=os.getloadavg()[0])
         path = OUT / "bench_solve_infsup.json"
         rows = json.loads(path.read_text())["rows"] if path.exists() else []
@@ -529,10 +545,13 @@ def main(argv=None):
         print(json.dumps(res, indent=1))
         return 0
     if args.conditioning:
-        res = conditioning(args.conditioning, args.penalty, variants=args.variants)
-        res["command"] = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
-        (OUT / f"bench_solve_conditioning_{args.conditioning}.json").write_text(json.dumps(res, indent=1))
-        print(json.dumps(res, indent=1))
+        command = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
+
+        def keep(record):
+            (OUT / f"bench_solve_conditioning_{args.conditioning}.json").write_text(
+                json.dumps({**record, "command": command}, indent=1))
+
+        conditioning(args.conditioning, args.penalty, variants=args.variants, on_row=keep)
         return 0
     for size, fn, stem in ((args.probe_direct, probe_direct, "bench_solve_probe_direct"), (args.probe, probe, "bench_solve_probe")):
         if size:

@@ -24,6 +24,11 @@ anywhere else. Backends:
     rebuilt once the iterations lost to its staleness have cost as much as a rebuild
     (:class:`KrylovAMGSolver`). Newton passes an
     adaptive tolerance (inexact Newton). Memory grows linearly with the model.
+``mixed_amg`` (experimental)
+    The projected-energy tangent in mixed displacement–pressure form, flexible GMRES with a
+    block-triangular preconditioner (AMG on the displacement block without patch terms, diagonal
+    Schur complement; :mod:`.mixed`). Meant for inf-sup stable patches (2 × 2 × 3); not yet
+    robust in K/μ on the leg models (docs/performance.md).
 ``petsc``
     PETSc (optional petsc4py) on one or several MPI ranks (``mpiexec -n P pixmuscle solve …``):
     each rank assembles the tangent rows of a slab of slices into a distributed AIJ matrix,
