@@ -34,6 +34,7 @@ e.g. ``75k:cg_amg:1e-2``; such cases are labelled "cg_amg, Newton 0.01" in the t
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import pathlib
@@ -226,88 +227,175 @@ def probe(size: str, penalty: float | None) -> dict:
 
 #: the tissues' bulk moduli of Tables 1–2 (N/cm²), scaled by --conditioning
 BULK = {"muscle": 5000.0, "connective_tissue": 50000.0, "fat": 5000.0}
+#: the iterative backend that ``solve.solver.backend: auto`` takes above its direct limit
+AUTO_ITERATIVE = "cg_amg"
+
+
+#: --conditioning variants, VOLUMETRIC[:PATCH]:BACKEND (the first two are the earlier records' rows)
+CONDITIONING_VARIANTS = ("nodal:cg_amg", "projected:1,1,3:cg_amg", "projected:2,2,3:cg_amg", "projected:2,2,3:mixed_amg")
+
+
+def parse_variant(spec: str) -> tuple[str, tuple[int, int, int] | None, str]:
+    """``nodal:BACKEND`` or ``projected:PX,PY,PZ:BACKEND`` → (method, patch, backend)."""
+    parts = spec.split(":")
+    if parts[0] == "nodal" and len(parts) == 2:
+        return "nodal", None, parts[1]
+    if parts[0] == "projected" and len(parts) == 3:
+        return "projected", tuple(int(x) for x in parts[1].split(",")), parts[2]
+    raise ValueError(f"variant {spec!r}: expected nodal:BACKEND or projected:PX,PY,PZ:BACKEND")
 
 
 def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol: float = 1e-6,
-                 methods=("nodal", "projected")) -> dict:
-    """CG iterations of one Newton system (first load step, α = 0.095) against near-incompressibility.
+                 variants=CONDITIONING_VARIANTS, on_row=None) -> dict:
+    """Krylov iterations of one Newton system (first load step, α = 0.095) against near-incompressibility.
 
-    Every tissue's bulk modulus K is multiplied by each of ``scales`` (K/μ ≈ 90, 900, 9,000 for the
-    paper's constants), for the nodal and the projected volumetric energy; ``cg_amg`` solves the
-    system to ``rtol``. A formulation whose iterations stay flat as K/μ grows is robust where
-    the cost of the nearly incompressible tissues comes from.
+    Every tissue's bulk modulus K is multiplied by each of ``scales`` (K/μ ≈ 95, 950, 9,500 for the
+    paper's constants), for each variant (volumetric energy, patch, backend); the backend solves
+    the system to ``rtol``. A formulation and solver whose iterations stay flat as K/μ grows are
+    robust where the cost of the nearly incompressible tissues comes from. Rows of the shipped
+    defaults (:class:`~pixmuscle.mechanics.config.VolumetricConfig`, the backend ``auto`` picks
+    above its direct limit) carry ``"default": true``. ``on_row(record)`` is called with the
+    record so far after every row (a long run keeps what it measured).
+
+    The penalty number β of the end and bone constraints is the default one of the paper's tissues
+    (K × 1) in every row: the default β grows with K, and a stiffer penalty slows every iterative
+    solver whatever the tissue, which is not what this measures.
     """
-    from pixmuscle.mechanics.linsolve import make_solver, pcg
+    from pixmuscle.errors import SolverError
+    from pixmuscle.mechanics.config import SolveConfig
+    from pixmuscle.mechanics.linsolve import make_solver
     from pixmuscle.mechanics.solve import build_system
 
+    shipped = SolveConfig()
     rows = []
-    for method in methods:
+    beta = None
+    for spec in variants:
+        method, patch, backend = parse_variant(spec)
         for scale in scales:
             mats = {k: {"K": v * scale} for k, v in BULK.items()}
-            model, cfg = leg_case(size, penalty, materials=mats, volumetric={"method": method})
+            vol = {"method": method} if patch is None else {"method": method, "patch": list(patch)}
+            model, cfg = leg_case(size, penalty, materials=mats, volumetric=vol)
+            if beta is None:  # β of the tissues' own K (the first system built at scale 1)
+                beta = build_system(*leg_case(size, penalty, volumetric=vol))[1]["beta"]
+            cfg = dataclasses.replace(cfg, penalty=dataclasses.replace(cfg.penalty, beta=beta))
             system, _ = build_system(model, cfg)
             state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.095)
-            solver = make_solver("cg_amg", model.X, ijk=model.ijk)
+            solver = make_solver(backend, model.X, ijk=model.ijk, rtol=rtol, maxiter=5000)
             t = time.perf_counter()
             solver.prepare(system, state)
             setup = time.perf_counter() - t
             t = time.perf_counter()
-            _, its, status = pcg(solver._A, state.r.ravel(), solver._M, rtol, 5000)
-            rows.append({"volumetric": method, "bulk_scale": scale, "K_over_mu_muscle": round(BULK["muscle"] * scale / 5.26),
-                         "cg_iterations": its, "status": status, "cg_s": round(time.perf_counter() - t, 1),
-                         "setup_s": round(setup, 1)})
+            try:
+                solver.solve(state.r.ravel(), rtol=rtol)
+                status = "converged"
+            except SolverError as exc:
+                status = str(exc).split(":")[1].strip()[:60]
+            its = int(solver.info["iterations"])
+            default = (method == shipped.volumetric.method and backend == AUTO_ITERATIVE
+                       and (patch is None or list(patch) == list(shipped.volumetric.patch)))
+            rows.append({"volumetric": method, "patch": None if patch is None else list(patch), "backend": backend,
+                         "bulk_scale": scale, "K_over_mu_muscle": round(BULK["muscle"] * scale / 5.26),
+                         "krylov_iterations": its, "status": status, "solve_s": round(time.perf_counter() - t, 1),
+                         "setup_s": round(setup, 1), "default": bool(default)})
             print(json.dumps(rows[-1]), flush=True)
-    return {"size": size, "nodes": model.n_nodes, "rtol": rtol, "rows": rows,
-            "peak_rss_GB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2)}
+            record = {"size": size, "nodes": model.n_nodes, "rtol": rtol, "penalty_beta": beta, "rows": rows,
+                      "load_avg": os.getloadavg()[0],
+                      "peak_rss_GB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2)}
+            if on_row is not None:
+                on_row(record)
+    return record
 
 
-def infsup(size: str, penalty: float | None) -> dict:
+def infsup(size: str, penalty: float | None, patch=(1, 1, 3), held: str = "pressure", dense: bool | None = None,
+           thresholds=(1e-3, 1e-2, 5e-2)) -> dict:
     """Is the patch pressure of the projected energy stable? The spectrum of its Schur complement.
 
     The projected energy is the condensed form of a mixed problem with one pressure per patch,
     [K_d Gᵀ; G −D⁻¹], where K_d is the tangent without the patch terms, G (N_p × 3N) the patch
     dilatation rates g_pᵀ and D = diag(V_p K̄_p). A solver whose iterations do not grow with K/μ
-    (MINRES with AMG on K_d and a diagonal Schur complement) needs S_G = G K_d⁻¹ Gᵀ to be
-    spectrally equivalent to the pressure mass scaled by 1/μ, diag(1/(μ_p V_p)) — the discrete
-    inf-sup condition. This computes the generalised eigenvalues of (S_G, diag(1/(μ_p V_p))) with
-    dense matrices (small models only), at F = I, α = 0.095: eigenvalues near 0 are pressure
-    modes that the displacement field can hardly produce, and they make the iterations grow with K.
+    (a Krylov method with multigrid on K_d and a diagonal Schur complement) needs
+    S_G = G K_d⁻¹ Gᵀ to be spectrally equivalent to the pressure mass scaled by 1/μ,
+    M = diag(1/(μ_p V_p)) — the discrete inf-sup condition. Generalised eigenvalues of (S_G, M)
+    near 0 are pressure modes that the displacement field can hardly produce; they make the
+    iterations grow with K. Computed at F = I, α = 0.095 for patches of ``patch`` voxels.
+
+    ``held="pressure"``: the single-node patches of held nodes are pressure unknowns too;
+    ``held="displacement"``: their terms stay in K_d (as the ``mixed_amg`` solver treats them).
+
+    Small models (``dense``, default up to 2,000 nodes) get the whole spectrum from dense
+    matrices. Any size gets the counts of eigenvalues below each threshold σ without computing
+    one: by Sylvester's law of inertia and the Haynsworth formula, the symmetric matrix
+    [K_d Gᵀ; G σM] has In(K_d) + In(σM − S_G) as inertia, so the number of its positive pivots
+    in an LDLᵀ factorisation (PARDISO), minus those of K_d, is the number of eigenvalues below σ.
     """
     import scipy.linalg as sl
     import scipy.sparse as sp
 
     from pixmuscle.mechanics.solve import build_system
-    from pixmuscle.mechanics.tangent import MatrixFreeTangent
 
-    model, cfg = leg_case(size, penalty, volumetric={"method": "projected"})
+    model, cfg = leg_case(size, penalty, volumetric={"method": "projected", "patch": list(patch)})
     system, _ = build_system(model, cfg)
     state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.095)
     n, vol = model.n_nodes, system.volumetric
-    full = system.tangent_operator(state)
-    Kd = MatrixFreeTangent(full.main, full.C, stab=system.stab, penalty=system.penalty)
-    eye = np.eye(3 * n)
-    Kdd = np.column_stack([Kd @ eye[:, k] for k in range(3 * n)])
-    Kdd = 0.5 * (Kdd + Kdd.T)
-    # G[p, 3m + i] = Σ_L Q[p, L] Σ_J a_L[i, J] ∂ψ_m/∂X_J(L): the stacked gradient operators, rows J·N + L
-    B, a = full.main.B, state.vol.a
-    G = np.empty((vol.n_patches, 3 * n))
-    for i in range(3):
-        Gi = sum(sp.diags(a[:, i, J]) @ B[J * n:(J + 1) * n] for J in range(3))
-        G[:, i::3] = (vol.Q @ Gi).toarray()
-    SG = G @ np.linalg.solve(Kdd, G.T)
+    press = np.ones(vol.n_patches, bool) if held == "pressure" else ~vol.held
+    if held == "pressure":  # K_d without any patch term
+        asm, base = system.assembler(None, patches=False)
+        data = base.copy()
+        asm.fill(system._g, state.A, system.scni.volume, out=data)
+        Kd = asm.matrix(data).tocsr()
+    else:
+        Kd = system.stiffness(state, pressure_free=True).tocsr()
+    B, a = system.tangent_operator(state).main.B, state.vol.a
+    Q = vol.Q[np.flatnonzero(press)]
+    G = sp.hstack([Q @ sum(sp.diags(a[:, i, J]) @ B[J * n:(J + 1) * n] for J in range(3)) for i in range(3)]).tocsr()
+    G = G[:, np.arange(3 * n).reshape(3, n).T.ravel()]  # columns i·N + m → node-major 3m + i
     A0 = system.A0
     mu = (A0[:, 0, 1, 0, 1] + A0[:, 0, 2, 0, 2] + A0[:, 1, 2, 1, 2]) / 3.0  # shear moduli, N/cm²
-    mass = 1.0 / ((vol.Q @ mu) * vol.vp)
-    w, V = sl.eigh(SG, np.diag(mass))
-    single = np.bincount(vol.patch_of, minlength=vol.n_patches) == 1
-    where = np.abs(V).argmax(axis=0)  # the patch each mode lives on most
-    small = w < 1e-2
-    return {"size": size, "nodes": n, "patches": vol.n_patches, "single_node_patches": int(single.sum()),
-            "eig_min": float(w[0]), "eig_max": float(w[-1]),
-            "eig_percentiles_1_5_50_95_99": [float(x) for x in np.percentile(w, [1, 5, 50, 95, 99])],
-            "modes_below_0.01": int(small.sum()),
-            "modes_below_0.01_on_single_node_patches": int(np.sum(small & single[where])),
-            "peak_rss_GB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2)}
+    mass = 1.0 / ((Q @ mu) * vol.vp[press])
+    out = {"size": size, "nodes": n, "patch": list(patch), "held_single_patches_in": held,
+           "patches": vol.n_patches, "pressure_unknowns": int(press.sum()),
+           "held_single_patches": int(vol.held.sum())}
+    if dense if dense is not None else n <= 2000:
+        Kdd = Kd.toarray()
+        Kdd = 0.5 * (Kdd + Kdd.T)
+        Gd = G.toarray()
+        w, V = sl.eigh(Gd @ np.linalg.solve(Kdd, Gd.T), np.diag(mass))
+        single = vol.held[press]
+        where = np.abs(V).argmax(axis=0)  # the patch each mode lives on most
+        small = w < 1e-2
+        out.update({"eig_min": float(w[0]), "eig_max": float(w[-1]),
+                    "eig_percentiles_1_5_50_95_99": [float(x) for x in np.percentile(w, [1, 5, 50, 95, 99])],
+                    "dense_modes_below": {f"{t:g}": int(np.sum(w < t)) for t in thresholds},
+                    "modes_below_0.01_on_single_node_patches": int(np.sum(small & single[where]))})
+    counts = {}
+    t0 = time.perf_counter()
+    Kup = sp.triu(Kd).tocsr()
+    base = _positive_pivots(Kup)
+    out["Kd_positive_pivots"], out["Kd_size"] = base, 3 * n
+    for t in thresholds:
+        M = sp.bmat([[Kup, G.T], [None, sp.diags(t * mass)]], format="csr")
+        counts[f"{t:g}"] = _positive_pivots(M) - base
+    out["modes_below"] = counts
+    out["modes_below_0.01"] = counts.get("0.01")
+    out["inertia_s"] = round(time.perf_counter() - t0, 1)
+    out["peak_rss_GB"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2)
+    return out
+
+
+def _positive_pivots(upper) -> int:
+    """Positive pivots of the LDLᵀ factorisation (PARDISO) of a symmetric matrix given by its upper triangle."""
+    from types import SimpleNamespace
+
+    from pixmuscle.mechanics.pardiso import PardisoLDLT
+
+    upper = upper.tocsr()
+    upper.sort_indices()
+    pat = SimpleNamespace(n=upper.shape[0], indptr=upper.indptr.astype(np.int32), indices=upper.indices.astype(np.int32))
+    f = PardisoLDLT(pat)
+    f.factorize(upper.data.astype(np.float64))
+    pos, neg = f.info["inertia"]
+    f.free()
+    return int(pos)
 
 
 def probe_direct(size: str, penalty: float | None) -> dict:
@@ -432,15 +520,40 @@ def main(argv=None):
                    help="PARDISO's symbolic analysis of the full tangent at SIZE (predicted factor size and "
                         "flops); writes results/bench_solve_probe_direct_SIZE.json")
     p.add_argument("--conditioning", default=None, metavar="SIZE",
-                   help="CG iterations of one Newton system at SIZE with the bulk moduli x0.1, x1, x10, nodal and "
-                        "projected volumetric energy; writes results/bench_solve_conditioning_SIZE.json")
+                   help="Krylov iterations of one Newton system at SIZE with the bulk moduli x0.1, x1, x10 for each "
+                        "--variants; writes results/bench_solve_conditioning_SIZE.json")
     p.add_argument("--infsup", default=None, metavar="SIZE",
-                   help="spectrum of the patch-pressure Schur complement against the 1/mu-scaled pressure mass "
-                        "(dense; 1.5k only); writes results/bench_solve_infsup_SIZE.json")
+                   help="small eigenvalues of the patch-pressure Schur complement against the 1/mu-scaled pressure "
+                        "mass (--patch, --held; counts by inertia at any size, whole spectrum up to 2k nodes); "
+                        "adds a row to results/bench_solve_infsup.json")
+    p.add_argument("--patch", default="1,1,3", help="--infsup: patch size in voxels, PX,PY,PZ")
+    p.add_argument("--held", default="pressure", choices=("pressure", "displacement"),
+                   help="--infsup: the single-node patches of held nodes are pressure unknowns, or stay in K_d")
+    p.add_argument("--thresholds", type=float, nargs="+", default=[1e-3, 1e-2, 5e-2],
+                   help="--infsup: count the eigenvalues below each of these (one LDLᵀ factorisation each)")
+    p.add_argument("--variants", nargs="+", default=list(CONDITIONING_VARIANTS),
+                   help="--conditioning: VOLUMETRIC[:PATCH]:BACKEND, e.g. projected:2,2,3:mixed_amg")
     args = p.parse_args(argv)
-    for size, fn, stem in ((args.probe_direct, probe_direct, "bench_solve_probe_direct"), (args.probe, probe, "bench_solve_probe"),
-                           (args.conditioning, conditioning, "bench_solve_conditioning"),
-                           (args.infsup, infsup, "bench_solve_infsup")):
+    if args.infsup:  # one row per (size, patch, held) in bench_solve_infsup.json
+        patch = tuple(int(x) for x in args.patch.split(","))
+        res = infsup(args.infsup, args.penalty, patch=patch, held=args.held, thresholds=tuple(args.thresholds))
+        res.update(command=".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv), load_avg=os.getloadavg()[0])
+        path = OUT / "bench_solve_infsup.json"
+        rows = json.loads(path.read_text())["rows"] if path.exists() else []
+        rows = [r for r in rows if (r["size"], r["patch"], r["held_single_patches_in"]) != (res["size"], res["patch"], res["held_single_patches_in"])]
+        path.write_text(json.dumps({"rows": rows + [res]}, indent=1))
+        print(json.dumps(res, indent=1))
+        return 0
+    if args.conditioning:
+        command = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
+
+        def keep(record):
+            (OUT / f"bench_solve_conditioning_{args.conditioning}.json").write_text(
+                json.dumps({**record, "command": command}, indent=1))
+
+        conditioning(args.conditioning, args.penalty, variants=args.variants, on_row=keep)
+        return 0
+    for size, fn, stem in ((args.probe_direct, probe_direct, "bench_solve_probe_direct"), (args.probe, probe, "bench_solve_probe")):
         if size:
             res = fn(size, args.penalty)
             res["command"] = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)

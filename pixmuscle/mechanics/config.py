@@ -190,7 +190,7 @@ class NewtonConfig:
 class LinearSolverConfig:
     """Linear solver backend (:mod:`pixmuscle.mechanics.linsolve`)."""
 
-    backend: str = field(default="auto", metadata={"doc": "auto, or a registered backend: direct, cg_amg (pixmuscle.mechanics.linsolve.BACKENDS)"})
+    backend: str = field(default="auto", metadata={"doc": "auto, or a registered backend: direct, cg_amg, mixed_amg (experimental), petsc (pixmuscle.mechanics.linsolve.BACKENDS)"})
     auto_direct_max_dofs: int | None = field(default=None, metadata={"range": (0, None), "doc": "auto: direct solver up to this many unknowns (3 per node), cg_amg above; default 45,000 (15k nodes: the measured cross-over with cg_amg, ~2.5 GB of factors) with PARDISO, 12,000 with SuperLU"})
     rtol: float = field(default=1.0e-10, metadata={"gt": 0, "doc": "relative residual of the Krylov iterations when Newton gives none; also the floor of Newton's adaptive tolerance"})
     direct_engine: Literal["auto", "pardiso", "superlu"] = field(default="auto", metadata={"doc": "direct: MKL PARDISO (optional package mkl, pip install 'pixmuscle[fast]') or SciPy's SuperLU; auto takes PARDISO when installed"})

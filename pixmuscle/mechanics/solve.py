@@ -138,9 +138,15 @@ class MechanicalSystem:
             return None
         return self.stab[0].apply(self.stab[1], np.asarray(d, float).reshape(-1, 3))
 
-    def assembler(self, reach: int | None = None) -> tuple[Assembler, np.ndarray]:
-        """Block pattern (full, or filtered to ``reach`` voxels) and its constant data (penalty + NSNI)."""
-        if reach not in self._assemblers:
+    def assembler(self, reach: int | None = None, patches: bool = True) -> tuple[Assembler, np.ndarray]:
+        """Block pattern (full, or filtered to ``reach`` voxels) and its constant data (penalty + NSNI).
+
+        The full pattern holds the node pairs of the patch terms of a projected volumetric
+        energy unless ``patches`` is false (the displacement block of the mixed form).
+        """
+        patches = bool(patches and reach is None and self.volumetric is not None)
+        key = (reach, patches)
+        if key not in self._assemblers:
             t0 = time.perf_counter()
             if self._support is None:
                 self._support = support_pattern(face_incidence(self.scni.faces, self.scni.volume), self.scni.psi_faces)
@@ -149,8 +155,8 @@ class MechanicalSystem:
             if reach is not None and sup.shape[0] == self.n_nodes:  # enlarged supports couple further than `reach`
                 wide = np.any(sup > sup.min(axis=0) * (1 + 1e-9), axis=1)
             # the preconditioner (reach) takes the volumetric stiffness node by node: no patch pattern
-            patches = None if self.volumetric is None or reach is not None else self.volumetric.structure()
-            asm = Assembler(self._support, ijk=self.model.ijk, reach=reach, wide=wide, patches=patches)
+            asm = Assembler(self._support, ijk=self.model.ijk, reach=reach, wide=wide,
+                            patches=self.volumetric.structure() if patches else None)
             if self._g is None:
                 self._g = asm.on_support(self.scni.G)
             base = asm.zeros()
@@ -159,9 +165,9 @@ class MechanicalSystem:
             if self.stabilization is not None:
                 stabilization_stiffness(self.scni, asm, self.A0, coefficient=self.stabilization.coefficient,
                                         modulus=self.stabilization.modulus, out=base)
-            self._assemblers[reach] = (asm, base)
+            self._assemblers[key] = (asm, base)
             self.timings["pattern_s"] = self.timings.get("pattern_s", 0.0) + time.perf_counter() - t0
-        return self._assemblers[reach]
+        return self._assemblers[key]
 
     def _material_kw(self, code, idx, alpha):
         if code == MUSCLE:
@@ -215,13 +221,30 @@ class MechanicalSystem:
         v = asm.patch_vectors(self._g, state.vol.a, wv, vol.patch_of)
         asm.fill_patches(v, vol.vp * vol.kbar, out)
 
-    def stiffness(self, state: State) -> sp.bsr_matrix:
-        """Consistent tangent K = Σ_L V_L B̃ᵀ A_L B̃ + K_stab + K_pen (BSR, 3N × 3N), N/cm."""
-        asm, base = self.assembler(None)
+    def _held_volumetric(self, state: State, A: np.ndarray) -> np.ndarray:
+        """A plus the nodal volumetric tangent K_L a_L⊗a_L at the nodes of held single-node patches:
+        their patch terms, which stay in the displacement block of the mixed form."""
+        vol = self.volumetric
+        bulk = np.where(vol.held[vol.patch_of], vol.bulk, 0.0)
+        a = state.vol.a
+        return A + bulk[:, None, None, None, None] * np.einsum("nij,nkl->nijkl", a, a)
+
+    def stiffness(self, state: State, pressure_free: bool = False) -> sp.bsr_matrix:
+        """Consistent tangent K = Σ_L V_L B̃ᵀ A_L B̃ + K_stab + K_pen (BSR, 3N × 3N), N/cm.
+
+        With ``pressure_free`` (projected volumetric energy only): the displacement block K_d of
+        the mixed form instead, i.e. without the patch terms of the patches whose pressure is an
+        unknown (all but the held single-node ones, :mod:`.linsolve.mixed`).
+        """
+        pressure_free = pressure_free and state.vol is not None
+        asm, base = self.assembler(None, patches=not pressure_free)
         t0 = time.perf_counter()
         data = base.copy()
-        asm.fill(self._g, state.A, self.scni.volume, out=data)
-        self._add_patches(asm, state, data)
+        if pressure_free:
+            asm.fill(self._g, self._held_volumetric(state, state.A), self.scni.volume, out=data)
+        else:
+            asm.fill(self._g, state.A, self.scni.volume, out=data)
+            self._add_patches(asm, state, data)
         K = asm.matrix(data)
         self.timings["assembly_s"] += time.perf_counter() - t0
         self.timings["n_assembly"] += 1
@@ -235,7 +258,7 @@ class MechanicalSystem:
         vol = None if self.volumetric is None else (self.volumetric, state.vol)
         return MatrixFreeTangent(self._main, C, stab=self.stab, penalty=self.penalty, volumetric=vol)
 
-    def preconditioner_matrix(self, state: State, reach: int = 2) -> sp.bsr_matrix:
+    def preconditioner_matrix(self, state: State, reach: int = 2, volumetric: str = "nodal") -> sp.bsr_matrix:
         """Filtered positive stand-in of the tangent for preconditioning (BSR, 3N × 3N), N/cm.
 
         Only blocks between nodes at most ``reach`` voxels apart are kept, and each node's
@@ -245,12 +268,18 @@ class MechanicalSystem:
         K_L a_L⊗a_L instead of the patch terms, whose node pairs reach beyond the filter (on the
         demo leg CG then needs 473 iterations to 10⁻⁶ against 131 with the nodal energy; filtered
         patch terms took 1,554).
+
+        ``volumetric="held"`` keeps that nodal volumetric stiffness only at the nodes of held
+        single-node patches: the displacement block of the mixed form (:mod:`.linsolve.mixed`),
+        whose other patch pressures are unknowns of their own.
         """
         asm, base = self.assembler(reach)
         t0 = time.perf_counter()
         data = base.copy()
         A = state.A
-        if state.vol is not None:  # the volumetric stiffness node by node, as the nodal energy has it
+        if state.vol is not None and volumetric == "held":
+            A = self._held_volumetric(state, A)
+        elif state.vol is not None:  # the volumetric stiffness node by node, as the nodal energy has it
             a = state.vol.a
             A = A + self.volumetric.bulk[:, None, None, None, None] * np.einsum("nij,nkl->nijkl", a, a)
         asm.fill(self._g, spd_surrogate(A), self.scni.volume, out=data)
@@ -546,7 +575,7 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
                  "boundary condition %s: constraint gap %.3g cm (%.2g %% of the largest displacement, %.3g cm); "
                  "its nodes move %.3g cm in the constrained components", name, g["max_cm"], 100 * g["relative"],
                  g["max_displacement_cm"], g["node_cm"])
-    for reach, (asm, _) in system._assemblers.items():
+    for (reach, _), (asm, _) in system._assemblers.items():
         key = "nnz_per_row" if reach is None else "preconditioner_nnz_per_row"
         info[key] = round(asm.nnz / (3 * model.n_nodes), 1)
     results = Results.from_steps(model, steps, failed_rows=failed_rows, status=status, n_steps=cfg.steps,

@@ -102,6 +102,8 @@ class PatchProjection:
         Volume-averaged bulk modulus K̄_p, N/cm².
     vp : (N_p,) float
         Patch volumes V_p, cm³.
+    held : (N_p,) bool
+        Patches of one held node (``single``).
     """
 
     def __init__(self, ijk: np.ndarray, volume: np.ndarray, bulk: np.ndarray, patch=(1, 1, 3), single=None):
@@ -112,14 +114,16 @@ class PatchProjection:
         key = ijk // patch
         key = key - key.min(axis=0)
         flat = np.ravel_multi_index(key.T, key.max(axis=0) + 1)
-        if single is not None and np.any(single):
-            single = np.asarray(single, bool)
+        single = np.zeros(ijk.shape[0], bool) if single is None else np.asarray(single, bool)
+        if np.any(single):
             flat[single] = flat.max() + 1 + np.arange(int(single.sum()))
         _, self.patch_of = np.unique(flat, return_inverse=True)
         self.patch_of = self.patch_of.astype(np.int64).reshape(-1)
         n = ijk.shape[0]
         self.n_nodes = n
         self.n_patches = int(self.patch_of.max()) + 1 if n else 0
+        self.held = np.zeros(self.n_patches, bool)
+        self.held[self.patch_of[single]] = True
         self.volume = np.asarray(volume, float)
         self.bulk = np.asarray(bulk, float)
         self.vp = np.bincount(self.patch_of, weights=self.volume, minlength=self.n_patches)
@@ -127,6 +131,17 @@ class PatchProjection:
         self.Q = sp.csr_matrix((w, (self.patch_of, np.arange(n))), shape=(self.n_patches, n))
         self.kbar = self.Q @ self.bulk
         self.patch = patch
+
+    def restricted(self, keep: np.ndarray) -> PatchProjection:
+        """The same patches with the rank-one terms of the patches not in ``keep`` (N_p,) bool removed.
+
+        Used by the mixed solvers: the patch terms of ``keep`` stay in the displacement block,
+        the others become pressure unknowns.
+        """
+        out = object.__new__(PatchProjection)
+        out.__dict__.update(self.__dict__)
+        out.kbar = np.where(keep, self.kbar, 0.0)
+        return out
 
     def structure(self) -> sp.csr_matrix:
         """Patch–node membership (N_p × N), ones."""

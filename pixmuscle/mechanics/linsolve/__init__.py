@@ -24,6 +24,11 @@ anywhere else. Backends:
     rebuilt once the iterations lost to its staleness have cost as much as a rebuild
     (:class:`KrylovAMGSolver`). Newton passes an
     adaptive tolerance (inexact Newton). Memory grows linearly with the model.
+``mixed_amg`` (experimental)
+    The projected-energy tangent in mixed displacement–pressure form, flexible GMRES with a
+    block-triangular preconditioner (AMG on the displacement block without patch terms, diagonal
+    Schur complement; :mod:`.mixed`). Meant for inf-sup stable patches (2 × 2 × 3); not yet
+    robust in K/μ on the leg models (docs/performance.md).
 ``petsc``
     PETSc (optional petsc4py) on one or several MPI ranks (``mpiexec -n P pixmuscle solve …``):
     each rank assembles the tangent rows of a slab of slices into a distributed AIJ matrix,
@@ -41,10 +46,13 @@ import numpy as np
 from .base import BACKENDS, LinearSolver, pcg, register, rigid_body_modes
 from .cg_amg import KrylovAMGSolver, voxel_aggregates
 from .direct import DirectSolver, nested_dissection
+from .fgmres import fgmres
+from .mixed import MixedBlockSolver
 from .petsc import PETScSolver
 
 __all__ = ["LinearSolver", "DirectSolver", "KrylovAMGSolver", "BACKENDS", "register", "make_solver", "pcg",
-           "rigid_body_modes", "voxel_aggregates", "nested_dissection", "AUTO_DIRECT_MAX_DOFS", "PETScSolver"]
+           "rigid_body_modes", "voxel_aggregates", "nested_dissection", "AUTO_DIRECT_MAX_DOFS", "PETScSolver",
+           "MixedBlockSolver", "fgmres"]
 
 # direct up to here: PARDISO + reuse is faster than cg_amg at 11.5k nodes (351 s against 626 s for the
 # benchmark sweep) and slower at 21k (2,244 s against ~1,200 s extrapolated), docs/performance.md

@@ -89,7 +89,7 @@ class KrylovAMGSolver(LinearSolver):
 
         t0 = time.perf_counter()
         self._M = None  # release the old hierarchy before the new one is built (peak memory)
-        Kp = self._system.preconditioner_matrix(self._state, self.reach)
+        Kp = self._stand_in()
         self.info["preconditioner_nnz_per_row"] = Kp.nnz / Kp.shape[0]
         ml = pyamg.smoothed_aggregation_solver(
             Kp, B=self.B, symmetry="symmetric", strength=("symmetric", {"theta": self.theta}),
@@ -107,6 +107,21 @@ class KrylovAMGSolver(LinearSolver):
         self._excess_s = 0.0
         self._stale = False
         self._fresh = True
+
+    def _stand_in(self) -> sp.bsr_matrix:
+        """The matrix the AMG hierarchy is built from: a filtered positive stand-in of the tangent."""
+        return self._system.preconditioner_matrix(self._state, self.reach)
+
+    def _account(self, its: int, rtol: float) -> None:
+        """Ski-rental bookkeeping after a converged solve of ``its`` iterations to ``rtol``."""
+        decades = max(np.log10(1.0 / rtol), 1.0)
+        if self._rate0 is None:
+            self._rate0 = max(its / decades, 1.0)
+        elif its > 0:
+            extra = its - self._rate0 * decades
+            self._excess_s += max(extra, 0.0) * self.info["solve_s"] / its
+            if self._excess_s > self._build_s:
+                self._stale = True  # rebuilt at the next prepare(), from that state's tangent
 
     def prepare(self, system, state):
         self.info["setup_s"] = 0.0
@@ -135,14 +150,7 @@ class KrylovAMGSolver(LinearSolver):
             raise SolverError(f"cg_amg: CG {status} after {its} iterations (relative residual target {rtol:.1e}); "
                               "check the boundary conditions (a free rigid-body motion makes K singular), or use "
                               "solver.backend: direct on small models")
-        decades = max(np.log10(1.0 / rtol), 1.0)
-        if self._rate0 is None:
-            self._rate0 = max(its / decades, 1.0)
-        elif its > 0:
-            extra = its - self._rate0 * decades
-            self._excess_s += max(extra, 0.0) * self.info["solve_s"] / its
-            if self._excess_s > self._build_s:
-                self._stale = True  # rebuilt at the next prepare(), from that state's tangent
+        self._account(its, rtol)
         return x
 
 

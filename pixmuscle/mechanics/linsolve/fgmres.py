@@ -1,0 +1,101 @@
+"""Flexible GMRES with right preconditioning (Saad 1993), restarted.
+
+References
+----------
+Y. Saad, "A flexible inner-outer preconditioned GMRES algorithm", SIAM J. Sci. Comput. 14(2),
+461–469, 1993.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def fgmres(A, b: np.ndarray, M, rtol: float, maxiter: int, restart: int = 60, x0: np.ndarray | None = None):
+    """Solve A x = b by restarted flexible GMRES, preconditioned from the right by M.
+
+    The preconditioner may change from one iteration to the next (an inner iteration, a
+    multigrid cycle): the preconditioned directions z_j = M v_j are kept, and the update is
+    x = x0 + Z y with y minimising ‖b − A (x0 + Z y)‖ over the Krylov basis (Arnoldi with
+    classical Gram–Schmidt applied twice, Givens rotations on the Hessenberg matrix).
+
+    Parameters
+    ----------
+    A, M : objects with ``@`` (operator and preconditioner), (n,) → (n,)
+    b : (n,) float
+    rtol : float
+        Stop when ‖b − A x‖ ≤ rtol ‖b‖ (the least-squares residual of the Arnoldi relation,
+        recomputed exactly at every restart).
+    maxiter : int
+        Total iterations (products with A) over all restarts.
+    restart : int
+        Basis vectors kept before a restart.
+    x0 : (n,) float, optional
+
+    Returns
+    -------
+    x : (n,) float
+    iterations : int
+    status : str
+        ``"converged"``, ``"maxiter"`` or ``"breakdown"`` (a zero Hessenberg pivot before convergence).
+    """
+    b = np.asarray(b, float)
+    x = np.zeros_like(b) if x0 is None else np.array(x0, float)
+    bn = float(np.linalg.norm(b))
+    if bn == 0.0:
+        return np.zeros_like(b), 0, "converged"
+    target = rtol * bn
+    its = 0
+    m = max(1, int(restart))
+    while True:
+        r = b - A @ x if its or x0 is not None else b.copy()
+        beta = float(np.linalg.norm(r))
+        if beta <= target:
+            return x, its, "converged"
+        if its >= maxiter:
+            return x, its, "maxiter"
+        V = np.empty((m + 1, b.size))
+        Z = np.empty((m, b.size))
+        H = np.zeros((m + 1, m))
+        cs = np.zeros(m)
+        sn = np.zeros(m)
+        g = np.zeros(m + 1)
+        g[0] = beta
+        V[0] = r / beta
+        k = 0
+        breakdown = False
+        for j in range(m):
+            Z[j] = M @ V[j]
+            w = A @ Z[j]
+            h = V[: j + 1] @ w
+            w -= V[: j + 1].T @ h
+            h2 = V[: j + 1] @ w  # second pass: orthogonality to round-off
+            w -= V[: j + 1].T @ h2
+            h += h2
+            hn = float(np.linalg.norm(w))
+            H[: j + 1, j] = h
+            H[j + 1, j] = hn
+            for i in range(j):  # previous rotations
+                t = cs[i] * H[i, j] + sn[i] * H[i + 1, j]
+                H[i + 1, j] = -sn[i] * H[i, j] + cs[i] * H[i + 1, j]
+                H[i, j] = t
+            rho = float(np.hypot(H[j, j], H[j + 1, j]))
+            if rho == 0.0:
+                breakdown = True
+                break
+            cs[j], sn[j] = H[j, j] / rho, H[j + 1, j] / rho
+            H[j, j] = rho
+            H[j + 1, j] = 0.0
+            g[j + 1] = -sn[j] * g[j]
+            g[j] = cs[j] * g[j]
+            its += 1
+            k = j + 1
+            if abs(g[j + 1]) <= target or its >= maxiter or hn == 0.0:
+                break
+            V[j + 1] = w / hn
+        if k:
+            y = np.linalg.solve(np.triu(H[:k, :k]), g[:k])
+            x += Z[:k].T @ y
+        if breakdown:
+            r = b - A @ x
+            return x, its, "converged" if float(np.linalg.norm(r)) <= target else "breakdown"
