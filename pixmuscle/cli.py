@@ -1,7 +1,8 @@
 """Command-line interface (typer): a thin layer over :mod:`pixmuscle.stages` and :mod:`pixmuscle.pipeline`.
 
 Every command turns a :class:`~pixmuscle.errors.PixmuscleError` into one line on stderr and exit
-code 2; ``--debug`` shows the traceback instead. Logs and progress go to stderr; the paths of the
+code 2; ``--debug`` shows the traceback instead. Ctrl-C and SIGTERM end it with one line and exit
+code 130 or 143 (docs/failures.md). Logs and progress go to stderr; the paths of the
 files a command wrote go to stdout, one per line, so ``$(pixmuscle report results.h5)`` is the
 report's ``index.html``.
 """
@@ -11,6 +12,7 @@ from __future__ import annotations
 import functools
 import importlib
 import logging
+import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -18,7 +20,7 @@ from pathlib import Path
 import typer
 
 from . import __version__
-from .errors import PixmuscleError
+from .errors import Interrupted, PixmuscleError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=(
     "pixmuscle: limb MRI + DTI → pixel-based meshfree (RKPM) muscle model → force.\n\n"
@@ -79,9 +81,11 @@ def _guard(fn: Callable) -> Callable:
                 raise
             typer.echo(f"error: {describe_os_error(exc, verb=None)}", err=True)
             raise typer.Exit(2) from None
-        except KeyboardInterrupt:
-            typer.echo("interrupted; no partial output was left behind", err=True)
-            raise typer.Exit(130) from None
+        except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (see main)
+            if not isinstance(exc, Interrupted):
+                exc = Interrupted("SIGINT")
+            typer.echo(exc.message(), err=True)
+            raise typer.Exit(exc.exit_code) from None
 
     return wrapper
 
@@ -230,6 +234,9 @@ def run(
         "Default: serial for one case, a local cluster sized to the machine for several.")),
     scheduler: str | None = typer.Option(None, "--scheduler", help=(
         "Address of an existing Dask scheduler (tcp://HOST:PORT); overrides execution.scheduler.")),
+    allow_stale: bool = typer.Option(False, "--allow-stale", help=(
+        "With --from: go on even when a file of an earlier stage was made under another config (else the "
+        "run is refused, naming the key); the report then shows the mismatch at the top.")),
 ) -> None:
     """Run segment → build-model → coarsen → solve → report, skipping up-to-date stages.
 
@@ -240,7 +247,7 @@ def run(
     from .pipeline import run_cases
 
     done = run_cases(config, force=force, start=start, until=until, workers=workers, scheduler=scheduler,
-                     overrides=set_, output_dir=output, subject=subject)
+                     overrides=set_, output_dir=output, subject=subject, allow_stale=allow_stale)
     for s in done["summaries"]:
         made = [s["report"]] if s.get("report") else [p for p in s.get("results", {}).values() if Path(p).exists()]
         _out(*(made or [s["output_dir"]]))
@@ -297,7 +304,16 @@ def verify_tendon(output: Path = typer.Option(Path("out/verify"), "--output", "-
         raise typer.Exit(1)
 
 
+def _on_sigterm(signum, frame) -> None:
+    """SIGTERM (batch schedulers before they kill) is handled like Ctrl-C: the running stage's partial
+    output is removed on the way out and the command ends with one line and exit code 143. A second
+    SIGTERM during that clean-up is ignored."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    raise Interrupted("SIGTERM")
+
+
 def main() -> None:  # console-script entry point
+    signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         app()
     except SystemExit:

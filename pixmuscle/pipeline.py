@@ -48,7 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from .config import parse_section, read_yaml
-from .errors import InputError, PixmuscleError
+from .errors import InputError, PixmuscleError, StaleInputError
 from .overrides import apply_overrides, parse_override
 from .plan import STAGES, plan_case, results_paths, stage_range, up_to_date  # noqa: F401  (re-exported)
 from .study import Study, parse_study, set_key
@@ -350,7 +350,7 @@ def load_config(path: str | Path) -> PipelineConfig:
 
 # --------------------------------------------------------------------------- running
 def run_subject(cfg: PipelineConfig, *, force: bool = False, start: str | None = None,
-                until: str | None = None) -> dict:
+                until: str | None = None, allow_stale: bool = False) -> dict:
     """Run the stages of one case in this process; returns its summary (paths, stages run/skipped).
 
     Errors propagate (:class:`~pixmuscle.errors.PixmuscleError` for bad input or a failed solve).
@@ -361,7 +361,7 @@ def run_subject(cfg: PipelineConfig, *, force: bool = False, start: str | None =
     from .preflight import check_case, stage_folders
     from .runners.serial import run_serial
 
-    stages = plan_case(cfg, start, until)
+    stages = _check_upstream(cfg, plan_case(cfg, start, until), start, allow_stale, "CONFIG")
     check_case(cfg, stages)
     with hold_folders(stage_folders(stages) | {cfg.output_dir}):
         outcome = run_serial({cfg.name: stages}, force=force, raise_errors=True)[cfg.name]
@@ -370,7 +370,7 @@ def run_subject(cfg: PipelineConfig, *, force: bool = False, start: str | None =
 
 def run_pipeline(path: str | Path, *, force: bool = False, start: str | None = None, until: str | None = None,
                  workers: int | None = None, scheduler: str | None = None, overrides=(),
-                 output_dir: str | Path | None = None, subject: str | None = None) -> bool:
+                 output_dir: str | Path | None = None, subject: str | None = None, allow_stale: bool = False) -> bool:
     """Run every case of a config; a failing case is reported and the others go on.
 
     Parameters
@@ -387,6 +387,9 @@ def run_pipeline(path: str | Path, *, force: bool = False, start: str | None = N
         Address of an existing Dask scheduler (``tcp://host:port``); default ``execution.scheduler``.
     overrides, output_dir, subject
         As ``pixmuscle run --set``, ``-o`` and ``--subject`` (see :func:`load_run`).
+    allow_stale : bool
+        As ``pixmuscle run --allow-stale``: go on when a stage file before ``--from`` was made under
+        another config (else :class:`~pixmuscle.errors.StaleInputError`); the report shows the mismatch.
 
     Returns
     -------
@@ -394,12 +397,13 @@ def run_pipeline(path: str | Path, *, force: bool = False, start: str | None = N
         True when every case succeeded. A single-case run raises its error instead.
     """
     return not run_cases(path, force=force, start=start, until=until, workers=workers, scheduler=scheduler,
-                         overrides=overrides, output_dir=output_dir, subject=subject)["failures"]
+                         overrides=overrides, output_dir=output_dir, subject=subject,
+                         allow_stale=allow_stale)["failures"]
 
 
 def run_cases(path: str | Path, *, force: bool = False, start: str | None = None, until: str | None = None,
               workers: int | None = None, scheduler: str | None = None, overrides=(),
-              output_dir: str | Path | None = None, subject: str | None = None) -> dict:
+              output_dir: str | Path | None = None, subject: str | None = None, allow_stale: bool = False) -> dict:
     """:func:`run_pipeline`, returning ``summaries`` (one per finished case: paths, stages run),
     ``failures`` (case name → error) and ``pages`` (cohort/study pages written)."""
     from .outdir import hold_folders
@@ -414,11 +418,12 @@ def run_cases(path: str | Path, *, force: bool = False, start: str | None = None
             failures[c.name] = c.error
             continue
         try:
-            plans[c.name] = plan_case(c, start, until)
+            plans[c.name] = _check_upstream(c, plan_case(c, start, until), start, allow_stale, run.path,
+                                            c.name if len(cases) > 1 else "")
             check_case(c, plans[c.name])  # before any stage of any case runs
         except InputError as exc:
             plans.pop(c.name, None)
-            if len(cases) == 1:
+            if len(cases) == 1 or isinstance(exc, StaleInputError):  # stale inputs stop the whole run
                 raise
             failures[c.name] = str(exc)
     for name, err in failures.items():
@@ -443,6 +448,30 @@ def run_cases(path: str | Path, *, force: bool = False, start: str | None = None
         progress.finish()
         pages = [] if subject else _write_summaries(run, summaries, failures)  # one subject: leave the pages alone
     return {"summaries": summaries, "failures": failures, "pages": pages}
+
+
+def _check_upstream(cfg: PipelineConfig, stages: list, start: str | None, allow_stale: bool, config: Any,
+                    case: str = "") -> list:
+    """The plan of a case after comparing the stage files before ``--from`` with the current config.
+
+    Raises
+    ------
+    StaleInputError
+        One of them was made under another config (or from changed inputs) and ``allow_stale``
+        is False. With ``allow_stale`` the mismatches are logged and shown on the report's first
+        screen instead.
+    """
+    from .plan import stale_message, stale_upstream, with_stale_note
+
+    stale = stale_upstream(cfg, start)
+    if not stale:
+        return stages
+    if not allow_stale:
+        raise StaleInputError(stale_message(stale, config, case))
+    for m in stale:
+        _LOG.warning("%s%s: going on with it (--allow-stale); rerun from %s to update it",
+                     f"{case}: " if case else "", m.describe(), m.rerun_from)
+    return with_stale_note(stages, stale)
 
 
 def _case_summary(cfg: PipelineConfig, outcome) -> dict:

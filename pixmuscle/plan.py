@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from .config import parse_section
-from .errors import InputError, SolverError
+from .errors import InputError, Interrupted, SolverError
 from .store import config_hash, sha256_file
 
 #: the CLI stages in pipeline order
@@ -132,13 +132,20 @@ def execute_stage(stage: Stage, force: bool = False) -> str:
     if not force and is_up_to_date(stage):
         return "skipped"
     module, func = stage.action.split(":")
-    stage.output.parent.mkdir(parents=True, exist_ok=True)
+    # the report folder itself is put in place as a unit by the stage (never created empty here)
+    (stage.output.parent.parent if stage.kind == "report" else stage.output.parent).mkdir(parents=True, exist_ok=True)
     try:
         getattr(importlib.import_module(module), func)(**stage.kwargs)
     except SolverError:
         if stage.on_failure is not None:
             _after_failure(stage.on_failure)
         raise
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: say which stage was running
+        if not isinstance(exc, Interrupted):
+            exc = Interrupted("SIGINT")
+        if exc.stage is None:
+            exc.stage = stage.label
+        raise exc from None
     return "ran"
 
 
@@ -158,6 +165,146 @@ def _after_failure(report: Stage) -> None:
     except (PixmuscleError, OSError) as exc:
         shutil.rmtree(folder, ignore_errors=True)
         log.error("the solve failed and its report could not be written (%s); the older report was removed", exc)
+
+
+#: the ``--from`` stage that redoes the output of each stage kind
+RERUN_FROM = {"segment": "segment", "build-model": "build-model", "coarsen": "coarsen", "solve": "solve",
+              "muscle-forces": "solve", "force-length": "solve"}
+
+_UNSET = "(not set)"
+
+
+@dataclasses.dataclass(frozen=True)
+class Mismatch:
+    """An upstream stage file that no longer matches the current config (or its own inputs).
+
+    Attributes
+    ----------
+    stage : str
+        Kind of the upstream stage (``"solve"``).
+    file : Path
+        Its output file, which the run would read as it is.
+    rerun_from : str
+        The ``--from`` stage that remakes it.
+    key : str or None
+        First config key (dotted path) whose value differs; None when an input file changed.
+    recorded, current : object
+        The key's value in the file's recorded config and in the current config.
+    changed_input : str or None
+        An input file of that stage whose content changed since the file was made.
+    """
+
+    stage: str
+    file: Path
+    rerun_from: str
+    key: str | None = None
+    recorded: Any = None
+    current: Any = None
+    changed_input: str | None = None
+
+    def describe(self) -> str:
+        """What differs, in one clause (no advice)."""
+        if self.key is not None:
+            return (f"{self.key} is {self.current!r} in the config but {self.file.name} was made with "
+                    f"{self.recorded!r}")
+        return f"{self.file.name} was made from another version of {self.changed_input} (changed since)"
+
+
+def _first_difference(recorded: Any, current: Any, prefix: str) -> tuple[str, Any, Any] | None:
+    """First (key path, recorded value, current value) where two plain config trees differ."""
+    if isinstance(recorded, dict) and isinstance(current, dict):
+        for k in [*current, *(k for k in recorded if k not in current)]:
+            key = f"{prefix}.{k}" if prefix else str(k)
+            if k not in recorded or k not in current:
+                return key, recorded.get(k, _UNSET), current.get(k, _UNSET)
+            found = _first_difference(recorded[k], current[k], key)
+            if found:
+                return found
+        return None
+    if isinstance(recorded, list) and isinstance(current, list) and len(recorded) == len(current):
+        for i, (a, b) in enumerate(zip(recorded, current, strict=True)):
+            found = _first_difference(a, b, f"{prefix}[{i}]")
+            if found:
+                return found
+        return None
+    return None if recorded == current else (prefix, recorded, current)
+
+
+def stage_mismatch(stage: Stage) -> Mismatch | None:
+    """How an existing stage file differs from what ``stage`` would make now (None: it matches, or
+    it is missing or not a stage file, which the stage reading it reports itself)."""
+    import yaml
+
+    from .store import _plain, read_meta
+
+    if stage.schema is None or not stage.output.is_file():
+        return None
+    try:
+        meta = read_meta(stage.output)
+    except (OSError, ValueError):
+        return None
+    prov = meta["provenance"]
+    rerun = RERUN_FROM[stage.kind]
+    if prov.get("config_sha256") != config_hash(stage.config):
+        current = yaml.safe_load(yaml.safe_dump(_plain(stage.config), sort_keys=False))
+        text = meta["config"]
+        recorded = yaml.safe_load(text.decode() if isinstance(text, bytes) else text or "{}")
+        prefix = SECTION_OF[stage.kind] if stage.kind in STAGES else ""
+        key, old, new = _first_difference(recorded, current, prefix) or (prefix or stage.kind, "(another value)", "")
+        return Mismatch(stage.kind, stage.output, rerun, key=key, recorded=old, current=new)
+    for p, sha in prov.get("inputs", {}).items():
+        if Path(p).is_file() and sha256_file(p) != sha:
+            return Mismatch(stage.kind, stage.output, rerun, changed_input=Path(p).name)
+    return None
+
+
+def stale_upstream(cfg: Any, start: str | None) -> list[Mismatch]:
+    """The stage files before ``--from start`` that a run would read although they were made under
+    another config (or from input files that changed since), in pipeline order.
+
+    Parameters
+    ----------
+    cfg : pixmuscle.pipeline.PipelineConfig
+        One case.
+    start : str or None
+        ``--from``: the stages before it are not run, their files are used as they are.
+    """
+    a, _ = stage_range(start, None)
+    if a == 0:
+        return []
+    try:
+        upstream = plan_case(cfg, None, STAGES[a - 1])
+    except InputError:  # e.g. no solve section for --from report: nothing to compare
+        return []
+    return [m for m in map(stage_mismatch, upstream) if m is not None]
+
+
+def stale_message(mismatches: list[Mismatch], config: str | Path, case: str = "") -> str:
+    """One line refusing a run on stale inputs: the first difference and the stage to rerun from."""
+    m = mismatches[0]
+    who = f"{case}: " if case else ""
+    return (f"{who}{m.describe()}: rerun from {m.rerun_from} (pixmuscle run {config} --from {m.rerun_from}), "
+            "or pass --allow-stale to go on with the older results")
+
+
+def with_stale_note(stages: list[Stage], mismatches: list[Mismatch]) -> list[Stage]:
+    """The stages with the mismatches handed to the report stage (shown on its first screen)."""
+    if not mismatches:
+        return stages
+    lines = [f"{m.describe()} (rerun from {m.rerun_from} to update it)" for m in mismatches]
+
+    def noted(report: Stage) -> Stage:
+        extra = {**report.kwargs.get("extra", {}), "stale_inputs": lines}
+        return dataclasses.replace(report, kwargs={**report.kwargs, "extra": extra})
+
+    out = []
+    for st in stages:
+        if st.kind == "report":
+            st = noted(st)
+        elif st.on_failure is not None:
+            st = dataclasses.replace(st, on_failure=noted(st.on_failure))
+        out.append(st)
+    return out
 
 
 def stage_range(start: str | None, until: str | None) -> tuple[int, int]:

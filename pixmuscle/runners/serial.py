@@ -6,6 +6,7 @@ import logging
 import time
 from pathlib import Path
 
+from ..errors import Interrupted
 from ..plan import Stage, execute_stage
 from . import CaseOutcome, Progress, error_message
 
@@ -45,6 +46,9 @@ def run_serial(plans: dict[str, list[Stage]], *, force: bool = False, progress: 
             else:
                 try:
                     state, err = execute_stage(stage, force), None
+                except Interrupted as exc:  # Ctrl-C or SIGTERM: the finished stages' files stay
+                    exc.kept = [Path(st.output).name for st in stages[:stages.index(stage)] if Path(st.output).exists()]
+                    raise
                 except Exception as exc:
                     if raise_errors:
                         raise
