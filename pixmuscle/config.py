@@ -215,6 +215,60 @@ def parse_section(cls: type, data: Mapping | None, where: str, base_dir: Path | 
         raise InputError(f"{where}: {exc}") from None
 
 
+def check_key(cls: type, dotted: str, value: Any, where: str, base_dir: Path | str = ".") -> Any:
+    """Check that ``dotted`` names a key of the section dataclass ``cls`` and that ``value`` has its
+    type and range, without the rest of the section (a study's ``vary`` keys, before any case).
+
+    Parameters
+    ----------
+    cls : dataclass type
+        The section schema (``SolveConfig``).
+    dotted : str
+        Key path inside the section (``"materials.muscle.sigma_max"``); it may continue into a
+        mapping-typed field (``"activation.to"``).
+    value : object
+        The value the key would get.
+    where : str
+        Prefix of the key path in messages (``"study.vary.solve"``).
+
+    Returns
+    -------
+    object
+        The value as the section would hold it.
+
+    Raises
+    ------
+    InputError
+        An unknown key (with the closest valid one), or a value of the wrong type or range.
+    """
+    tp: Any = cls
+    meta: Mapping = {}
+    parts = dotted.split(".")
+    for i, name in enumerate(parts):
+        key = ".".join([where, *parts[:i + 1]]) if where else ".".join(parts[:i + 1])
+        origin = typing.get_origin(tp)
+        if origin in (Union, types.UnionType):  # Optional[X] on the way down: X
+            real = [a for a in typing.get_args(tp) if a is not type(None)]
+            tp = next((a for a in real if dataclasses.is_dataclass(a) or typing.get_origin(a) in (dict, Mapping)), real[0])
+            origin = typing.get_origin(tp)
+        if dataclasses.is_dataclass(tp):
+            fields = {f.name: f for f in dataclasses.fields(tp) if f.init}
+            if name not in fields:
+                close = difflib.get_close_matches(name, list(fields), n=1)
+                hint = f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(fields)}"
+                raise InputError(f"{key}: unknown key{hint}")
+            tp, meta = typing.get_type_hints(tp)[name], fields[name].metadata
+        elif origin in (dict, Mapping):
+            args = typing.get_args(tp)
+            tp = args[1] if args else Any
+        elif tp is Any:
+            return value
+        else:
+            raise InputError(f"{key}: '{'.'.join(parts[:i])}' is {_typename(tp)}, not a mapping, so it has no key '{name}'")
+    where_value = ".".join([where, *parts]) if where else dotted
+    return _coerce(value, tp, where_value, Path(base_dir), meta)
+
+
 class _UniqueKeyLoader(yaml.SafeLoader):
     """Safe YAML loader that refuses a mapping key given twice (plain YAML keeps the last one)."""
 

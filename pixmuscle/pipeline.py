@@ -306,10 +306,13 @@ def load_run(path: str | Path, *, strict: bool = True, overrides=(), output_dir:
         entries = [e for e in entries if e[0] == subject]
     combos = [((), "")] if study is None else [
         (tuple(zip(study.keys, vals, strict=True)), cname) for vals, cname in zip(study.cases, study.names, strict=True)]
+    if study is not None:
+        _check_study(study, len(entries), path, base_dir)
     cases = []
     folders: dict[Path, str] = {}
     for name, s, where, subj_dir in entries:
         bad = sorted(set(s) - _SUBJECT_KEYS - {"name"})
+        base_ok = study is not None and _parses(common, s, sets, bad, name, where, base_dir, subj_dir)
         for params, cname in combos:
             case_name = f"{name}/{cname}" if cname else name
             out_dir = subj_dir / cname if cname else subj_dir
@@ -330,12 +333,47 @@ def load_run(path: str | Path, *, strict: bool = True, overrides=(), output_dir:
                              study_sections=study.sections if study else frozenset())
                 cases.append(_parse_case(merged, case_name, where, base_dir, out_dir, **extra))
             except InputError as exc:
+                if base_ok:  # the subject is valid without the study's values: the study is at fault
+                    raise InputError(f"{path}: study.vary: {exc} (study case {cname}); nothing was run") from None
                 if strict or (subjects is None and study is None):   # a single case: its error is the run's
                     raise
                 msg = f"{exc} (study case {cname})" if cname else str(exc)
                 cases.append(SubjectError(case_name, msg, out_dir, **info))
     return RunConfig(path, root, cases, tuple(e[0] for e in entries), subjects is not None and subject is None, study,
                      scheduler, workers)
+
+
+def _check_study(study: Study, n_subjects: int, path: Path, base_dir: Path) -> None:
+    """Every ``vary`` key and value against the typed config, and the case count against its bound,
+    before any case is set up (a bad study is the run's error, never one error per case)."""
+    from .config import check_key
+    from .study import MAX_CASES, format_value
+
+    n = n_subjects * len(study.cases)
+    if n > MAX_CASES:
+        sizes = " × ".join(f"{len({format_value(c[i]) for c in study.cases})} ({k})" for i, k in enumerate(study.keys))
+        per = f" × {n_subjects} subjects" if n_subjects > 1 else ""
+        raise InputError(f"{path}: study.vary: {n} cases ({sizes}{per}) is more than the bound of {MAX_CASES} "
+                         "cases of one run; vary fewer values, or split the study into several configs")
+    for i, key in enumerate(study.keys):
+        section, rest = key.split(".", 1)
+        cls = _section_class(section)
+        for value in {format_value(c[i]): c[i] for c in study.cases}.values():
+            check_key(cls, rest, value, f"{path}: study.vary.{section}", base_dir)
+
+
+def _parses(common: dict, s: dict, sets: list, bad: list, name: str, where: str, base_dir: Path, out: Path) -> bool:
+    """True when a subject's config (without the study's values) is valid on its own."""
+    if bad:
+        return False
+    merged = _deep_merge(common, {k: v for k, v in s.items() if k != "name"})
+    if s:
+        merged = apply_overrides(merged, [(k, v) for k, v in sets if k.split(".")[0] in _SUBJECT_KEYS])
+    try:
+        _parse_case(merged, name, where, base_dir, out)
+    except InputError:
+        return False
+    return True
 
 
 def load_subjects(path: str | Path, *, strict: bool = True) -> list:

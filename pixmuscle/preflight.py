@@ -6,7 +6,9 @@ needs several sections together or the file system:
 * the output folder can be created and written (not a file, not read-only);
 * every node-set boundary condition of ``solve`` names a set the model will have: the geometric
   sets of :data:`pixmuscle.model.nodesets.GEOMETRIC_SETS` plus the ``build_model.masks``
-  names when the model is built in this run, else the sets of the existing model file.
+  names when the model is built in this run, else the sets of the existing model file;
+* when the model to solve exists already, the solve's time and results size
+  (:func:`estimate_solve`, logged) and whether the results fit on the disk.
 
 Each failure is one :class:`~pixmuscle.errors.InputError` line naming the key.
 """
@@ -18,6 +20,73 @@ from typing import Any
 
 from .errors import InputError
 from .outdir import prepare_output_dir
+
+#: bytes per node and stored state of a results file: u, d (3 each), Cauchy stress (6), max principal (1), float64
+RESULT_BYTES_PER_NODE_STEP = 13 * 8
+#: the rough cost of one load step: ``SECONDS_PER_STEP_REF * (n_nodes / NODES_REF) ** STEP_TIME_EXPONENT``
+#: (docs/performance.md, whole sweeps: 60 s for 10 steps at 5,460 nodes, 2,369 s at 73,753 nodes)
+SECONDS_PER_STEP_REF, NODES_REF, STEP_TIME_EXPONENT = 6.0, 5460, 1.4
+
+
+def estimate_solve(n_nodes: int, steps: int) -> tuple[float, float]:
+    """Rough wall time and results size of one solve, before it starts.
+
+    Parameters
+    ----------
+    n_nodes : int
+        Nodes of the model.
+    steps : int
+        Load steps (``solve.steps``); the results hold ``steps + 1`` states.
+
+    Returns
+    -------
+    seconds : float
+        Order of magnitude only (one machine of docs/performance.md, default solver settings).
+    nbytes : float
+        Uncompressed size of the per-node fields of every stored state (gzip rarely halves it).
+    """
+    seconds = steps * SECONDS_PER_STEP_REF * (max(n_nodes, 1) / NODES_REF) ** STEP_TIME_EXPONENT
+    return seconds, float(steps + 1) * n_nodes * RESULT_BYTES_PER_NODE_STEP
+
+
+def check_solve_size(out_path: Path, n_nodes: int, steps: int, key: str = "solve.steps") -> tuple[float, float]:
+    """Refuse a solve when not even half of its results fit on the disk (gzip rarely halves them).
+
+    Returns
+    -------
+    (seconds, nbytes) of :func:`estimate_solve` (:func:`describe_estimate` words them).
+
+    Raises
+    ------
+    OutputError
+        Naming the output, ``key`` and the free space.
+    """
+    from .errors import OutputError
+    from .outdir import _mb, free_bytes
+
+    seconds, nbytes = estimate_solve(n_nodes, steps)
+    free = free_bytes(Path(out_path).parent)
+    if free < 0.5 * nbytes:
+        raise OutputError(f"{out_path}: not enough free disk space for the results of this solve: {key} = {steps} "
+                          f"load steps of a {n_nodes}-node model need about {_mb(nbytes)}, {_mb(free)} free; "
+                          f"lower {key} (or use a coarser model) or free disk space")
+    return seconds, nbytes
+
+
+def describe_estimate(n_nodes: int, steps: int, seconds: float, nbytes: float) -> str:
+    """``"535 nodes × 10 load steps: about 2 s and 0.6 MB of results (rough estimate)"``."""
+    from .outdir import _mb
+
+    return (f"{n_nodes} nodes × {steps} load steps: about {_duration(seconds)} and {_mb(nbytes)} of results "
+            "(rough estimate)")
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 90:
+        return f"{max(seconds, 1):.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
 
 
 def stage_folders(stages) -> set[Path]:
@@ -50,6 +119,16 @@ def expected_node_sets(cfg: Any, stages) -> set[str] | None:
     return names
 
 
+def _nodes_in(path: Path) -> int | None:
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return int(f["nodes/X"].shape[0]) if "nodes/X" in f else None
+    except (OSError, KeyError):
+        return None
+
+
 def _sets_in(path: Path) -> set[str] | None:
     import h5py
 
@@ -77,6 +156,11 @@ def check_case(cfg: Any, stages) -> None:
     for folder in sorted(stage_folders(stages) | {Path(cfg.output_dir)}):
         prepare_output_dir(folder)
     if cfg.solve is not None and any(st.kind == "solve" for st in stages):
+        for st in stages:  # the model exists (--from solve): its size and the steps, before any stage runs
+            n = _nodes_in(Path(st.kwargs["model_path"])) if st.kind == "solve" else None
+            if n is not None:
+                prepare_output_dir(Path(st.output).parent)
+                check_solve_size(Path(st.output), n, cfg.solve.steps)
         known = expected_node_sets(cfg, stages)
         if known is not None:
             for i, bc in enumerate(cfg.solve.boundary_conditions):

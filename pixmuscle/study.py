@@ -27,6 +27,9 @@ from .errors import InputError
 
 _SAFE = re.compile(r"[^A-Za-z0-9._+-]")
 
+#: most cases one run may have (subjects × combinations); each case is a whole solve
+MAX_CASES = 1000
+
 
 @dataclasses.dataclass(frozen=True)
 class Study:
@@ -122,6 +125,13 @@ def parse_study(raw: Any, sections: set[str], where: str = "study") -> Study | N
                 raise InputError(f"{where}.vary.{k}: values {seen[text]!r} and {v!r} give the same case folder "
                                  f"('{text}'): duplicate case")
             seen[text] = v
+    n_grid = 1
+    for k in keys:
+        n_grid *= len(vary[k])
+    if mode == "grid" and n_grid > MAX_CASES:  # before the grid is expanded in memory
+        sizes = " × ".join(f"{len(vary[k])} ({k})" for k in keys)
+        raise InputError(f"{where}.vary: the grid makes {n_grid} cases ({sizes}), more than the bound of "
+                         f"{MAX_CASES} cases of one run; vary fewer values, or split the study into several configs")
     if mode == "list":
         lengths = {k: len(vary[k]) for k in keys}
         if len(set(lengths.values())) > 1:

@@ -24,6 +24,9 @@ from typing import Literal
 
 from .materials import CONNECTIVE_TISSUE, FAT, MUSCLE
 
+#: most load steps of one solve (docs/failures.md): a sweep needs 10–20; cut-backs refine by themselves
+MAX_STEPS = 1000
+
 AXES = ("x", "y", "z")
 
 
@@ -220,7 +223,7 @@ def _default_bcs() -> list:
 class SolveConfig:
     """Section ``solve``: load steps, activation ramp, boundary conditions and numerics."""
 
-    steps: int = field(default=10, metadata={"range": (1, None), "doc": "number of load steps"})
+    steps: int = field(default=10, metadata={"range": (1, MAX_STEPS), "doc": "number of load steps"})
     activation: dict[str, float | dict[str, float] | Path] = field(
         default_factory=lambda: {"from": 0.0, "to": 1.0},
         metadata={"doc": "{from: α0, to: α1[, image: file]}: muscle activation ramped linearly over the steps (0..1); "

@@ -44,7 +44,7 @@ from typing import Literal
 import numpy as np
 
 from .activation import ActivationRamp
-from .config import AXES, BoundaryCondition, SolveConfig
+from .config import AXES, MAX_STEPS, BoundaryCondition, SolveConfig
 
 __all__ = ["ForceLengthConfig", "MuscleForcesConfig", "decompose", "force_length_cases", "muscle_force_ramps",
            "reference_length"]
@@ -73,7 +73,7 @@ class ForceLengthConfig:
     activation: float | dict[str, float] = field(default=1.0, metadata={
         "doc": "fixed activation of the active curve: a number or a mapping muscle → α with optional 'default' "
                "(solve.activation.image, if any, multiplies it)"})
-    steps: int = field(default=4, metadata={"range": (1, None), "doc": "load steps of each active solve (α and δ "
+    steps: int = field(default=4, metadata={"range": (1, MAX_STEPS), "doc": "load steps of each active solve (α and δ "
                                                                         "ramped together), and per point of a passive branch"})
 
     def __post_init__(self):

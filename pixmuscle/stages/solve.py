@@ -20,7 +20,8 @@ from ..mechanics.boundary import check_boundary_conditions
 from ..mechanics.config import SolveConfig
 from ..mechanics.solve import solve
 from ..model.tissues import MUSCLE
-from ..outdir import check_free_space, prepare_output_dir
+from ..outdir import prepare_output_dir
+from ..preflight import check_solve_size, describe_estimate
 from ..progress import newton_feed
 from ..progress import progress as _progress
 
@@ -142,10 +143,10 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
     with capture_warnings() as warnings:
         model = load_model(model_path)
         check_boundary_conditions(model, list(cfg.boundary_conditions))  # before the (long) set-up
-        # results hold u, d, Cauchy stress and max principal stress per node and step (float64, gzip
-        # rarely halves them): refuse to start when even half of that does not fit
+        # log the time and size estimate; refuse to start when not even half of the results fit
         prepare_output_dir(Path(out_path).parent, "output folder")
-        check_free_space(Path(out_path), 0.5 * (cfg.steps + 1) * model.n_nodes * 13 * 8, "the results of this solve")
+        estimate = check_solve_size(Path(out_path), model.n_nodes, cfg.steps)
+        _LOG.info("solve: %s", describe_estimate(model.n_nodes, cfg.steps, *estimate))
         ramp = model_activation(model, cfg)
         falling = {k: ab for k, ab in _per_muscle(cfg, ramp, model).items() if ab[1] < ab[0]}
         if falling:
