@@ -64,4 +64,5 @@ class Interrupted(KeyboardInterrupt):
         where = f" during {self.stage}" if self.stage else ""
         kept = (f"kept: {', '.join(self.kept)}" if self.kept
                 else "no stage had finished in this run")
-        return f"{how}{where}: the partial output of the interrupted stage was removed; {kept}"
+        return (f"{how}{where}: its partial output was removed (an earlier complete one, if any, is unchanged); "
+                f"{kept}")

@@ -482,3 +482,140 @@ def test_decreasing_ramp_is_allowed_and_logged_on_stderr(solved, tmp_path):
     with h5py.File(tmp_path / "r.h5") as f:
         assert f.attrs["status"] == "complete"
         np.testing.assert_allclose(f["steps/alpha"][()], [0.5, 0.3, 0.1])
+
+
+# --------------------------------------------------------------------------- results that match their config
+def _report_html(out: Path) -> str:
+    return (out / "report" / "index.html").read_text()
+
+
+def test_report_on_results_of_another_config_is_refused_or_marked(solved, tmp_path):
+    """`--from report` after editing a solve key: refused naming the key and `--from solve`; with
+    --allow-stale the report says so on its first screen and shows the config the results were solved with."""
+    cfg_path, out = copy_run(solved, tmp_path)
+    before = _report_html(out)
+    raw = yaml.safe_load(cfg_path.read_text())
+    raw["solve"]["materials"] = {"muscle": {"sigma_max": 20}}        # the results were solved with 30 (default)
+    write_config(cfg_path, raw)
+    r = proc("run", cfg_path, "--from", "report")
+    assert r.returncode == 2, r.stderr
+    line = error_line(r.stderr)
+    assert "solve.materials.muscle.sigma_max is 20.0 in the config but results_coarse.h5 was made with 30.0" in line
+    assert "--from solve" in line and "--allow-stale" in line
+    assert _report_html(out) == before and not leftovers(out)     # nothing was run
+    r = cli("run", cfg_path, "--from", "report", "--allow-stale")
+    assert r.exit_code == 0, r.stderr
+    html = _report_html(out)
+    first_screen = html[:html.index("<h2>")]                       # above the first section heading
+    assert "Inputs made under another configuration" in first_screen and "sigma_max is 20.0" in first_screen
+    solved_with = html[html.index("<h2>Configuration</h2>"):html.index("<h2>Provenance</h2>")]
+    assert "sigma_max: 30.0" in solved_with and "sigma_max: 20" not in solved_with
+    # an edit of an earlier stage names that stage
+    raw["solve"].pop("materials")
+    raw["coarsen"] = {"factor": 3}
+    write_config(cfg_path, raw)
+    line = error_line(proc("run", cfg_path, "--from", "solve").stderr)
+    assert "coarsen.factor is 3 in the config but model_coarse.h5 was made with 2" in line and "--from coarsen" in line
+
+
+# --------------------------------------------------------------------------- SIGTERM (batch schedulers)
+def _terminate(cmd: list, ready) -> tuple[int, str]:
+    """Start ``pixmuscle`` with ``cmd``, send SIGTERM once ``ready(stderr_line)`` says so, return (rc, stderr)."""
+    import signal
+
+    p = subprocess.Popen([sys.executable, "-m", "pixmuscle.cli", *map(str, cmd)], stderr=subprocess.PIPE,
+                         stdout=subprocess.DEVNULL, text=True)
+    seen = []
+    try:
+        for line in p.stderr:
+            seen.append(line)
+            if ready(line):
+                break
+        p.send_signal(signal.SIGTERM)
+        rest = p.stderr.read()
+        return p.wait(timeout=60), "".join(seen) + rest
+    finally:
+        if p.poll() is None:
+            p.kill()
+
+
+def test_sigterm_during_the_report(solved, tmp_path):
+    cfg_path, out = copy_run(solved, tmp_path)
+    before = _report_html(out)
+    rc, err = _terminate(["run", cfg_path], lambda line: "writing fields" in line)
+    assert rc == 143, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("terminated (SIGTERM) during report: its partial output was removed"), err
+    assert "kept: segmentation.h5, model.h5, model_coarse.h5, results_coarse.h5" in last
+    assert not leftovers(out) and _report_html(out) == before     # the earlier report as it was
+
+
+def test_sigterm_during_the_solve(solved, tmp_path):
+    cfg_path, out = copy_run(solved, tmp_path)
+    rc, err = _terminate(["run", cfg_path, "--set", "solve.steps=300"], lambda line: "× 300 load steps" in line)
+    assert rc == 143, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("terminated (SIGTERM) during solve (coarse)") and "kept: segmentation.h5" in last, err
+    assert not leftovers(out) and "Traceback" not in err
+
+
+# --------------------------------------------------------------------------- bounded work
+def test_too_many_load_steps_are_refused_before_any_work(phantom, tmp_path):
+    c = write_config(tmp_path / "c.yaml", base_config(phantom, tmp_path / "out"))
+    r = proc("run", c, "--set", "solve.steps=100000")
+    assert r.returncode == 2
+    assert "solve.steps: expected a value ≤ 1000, got 100000" in error_line(r.stderr)
+    assert not (tmp_path / "out").exists()
+
+
+def test_study_grid_beyond_the_bound_is_refused(phantom, tmp_path):
+    cfg = base_config(phantom, tmp_path / "out")
+    cfg["study"] = {"vary": {"solve.materials.muscle.sigma_max": list(range(1, 41)), "solve.steps": list(range(1, 31))}}
+    r = cli("run", write_config(tmp_path / "c.yaml", cfg))
+    assert r.exit_code == 2
+    line = error_line(r.stderr)
+    assert "study.vary: the grid makes 1200 cases (40 (solve.materials.muscle.sigma_max) × 30 (solve.steps))" in line
+    assert "bound of 1000" in line and not (tmp_path / "out").exists()
+
+
+@needs_mount
+def test_results_beyond_the_free_disk_are_refused_naming_solve_steps(solved, tmp_path):
+    """The estimate of the results (nodes × states) against the free space, before the solve starts."""
+    out, cfg = solved
+    c = write_config(tmp_path / "c.yaml", {"solve": {**cfg["solve"], "steps": 1000}})
+    target = tmp_path / "small" / "results.h5"
+    r = in_tmpfs(target.parent, "size=1m", "solve", out / "model_coarse.h5", "-c", c, "-o", target)
+    assert r.returncode == 2, r.stderr
+    line = error_line(r.stderr)
+    assert "not enough free disk space for the results of this solve: solve.steps = 1000 load steps" in line
+    assert "lower solve.steps" in line and "load step 1" not in r.stderr
+    assert r.stdout.strip() == "LEFT:"
+
+
+def test_solve_logs_its_estimate(solved, tmp_path):
+    out, cfg = solved
+    c = write_config(tmp_path / "c.yaml", {"solve": {**cfg["solve"], "steps": 1}})
+    r = cli("solve", out / "model_coarse.h5", "-c", c, "-o", tmp_path / "r.h5")
+    assert r.exit_code == 0, r.stderr
+    with h5py.File(out / "model_coarse.h5") as f:
+        n = f["nodes/X"].shape[0]
+    assert f"solve: {n} nodes × 1 load steps: about " in r.stderr and "MB of results (rough estimate)" in r.stderr
+
+
+# --------------------------------------------------------------------------- studies checked before any case
+@pytest.mark.parametrize("vary, expected", [
+    ({"solve.materials.muscle.sigma_mx": [20, 30]},
+     "study.vary.solve.materials.muscle.sigma_mx: unknown key; did you mean 'sigma_max'?"),
+    ({"solve.materials.muscle.sigma_max": [20, -5]},
+     "study.vary.solve.materials.muscle.sigma_max: expected a value ≥ 0.0, got -5.0"),
+    ({"solve.steps": [2, "many"]}, "study.vary.solve.steps: expected an integer, got 'many'"),
+    ({"solve.steps.first": [1]}, "study.vary.solve.steps.first: 'steps' is an integer, not a mapping"),
+])
+def test_study_with_a_bad_vary_key_or_value(phantom, tmp_path, vary, expected):
+    cfg = base_config(phantom, tmp_path / "out")
+    cfg["study"] = {"vary": vary}
+    c = write_config(tmp_path / "c.yaml", cfg)
+    r = cli("run", c)
+    assert r.exit_code == 2, r.stderr
+    assert f"{c}: {expected}" in error_line(r.stderr)
+    assert not (tmp_path / "out").exists()

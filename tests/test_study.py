@@ -107,13 +107,17 @@ def test_study_cases_folders_and_shared_stages(tmp_path):
     assert stages["report"].kwargs["results_path"] == root / "results_coarse.h5"
 
 
-def test_study_value_errors_are_per_case(tmp_path):
+def test_study_values_are_checked_before_any_case(tmp_path):
+    """A bad vary key or value is the run's error (every mode); a subject's own bad section stays its case's."""
     p = _labels_config(tmp_path, study={"vary": {"solve.materials.muscle.sigma_max": [20, -5]}})
-    with pytest.raises(InputError, match="sigma_max"):
-        load_run(p)
+    for strict in (True, False):
+        with pytest.raises(InputError, match=r"study.vary.solve.materials.muscle.sigma_max: expected a value ≥ 0.0"):
+            load_run(p, strict=strict)
+    p = _labels_config(tmp_path, subjects=[{"name": "a"}, {"name": "b", "coarsen": {"factor": 0}}],
+                       study={"vary": {"solve.materials.muscle.sigma_max": [20, 30]}})
     cases = load_run(p, strict=False).cases
-    assert type(cases[0]).__name__ == "PipelineConfig"
-    assert type(cases[1]).__name__ == "SubjectError" and "sigma_max" in cases[1].error
+    assert [type(c).__name__ for c in cases] == ["PipelineConfig"] * 2 + ["SubjectError"] * 2
+    assert "coarsen.factor" in cases[2].error
 
 
 def test_execution_section(tmp_path):
