@@ -210,32 +210,55 @@ class Mismatch:
         return f"{self.file.name} was made from another version of {self.changed_input} (changed since)"
 
 
-def _first_difference(recorded: Any, current: Any, prefix: str) -> tuple[str, Any, Any] | None:
-    """First (key path, recorded value, current value) where two plain config trees differ."""
+def _tree(obj: Any) -> Any:
+    """A config section as plain nested dicts and lists, keeping :class:`~pathlib.Path` values."""
+    import numpy as np
+
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: _tree(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, Mapping):
+        return {(k if isinstance(k, (str, int)) else str(k)): _tree(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_tree(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def _first_difference(recorded: Any, current: Any, prefix: str, same_file) -> tuple[str, Any, Any] | None:
+    """First (key path, recorded value, current value) where a recorded config tree and the current
+    one differ; a path is the same when ``same_file(recorded, current)`` says so."""
     if isinstance(recorded, dict) and isinstance(current, dict):
         for k in [*current, *(k for k in recorded if k not in current)]:
             key = f"{prefix}.{k}" if prefix else str(k)
             if k not in recorded or k not in current:
                 return key, recorded.get(k, _UNSET), current.get(k, _UNSET)
-            found = _first_difference(recorded[k], current[k], key)
+            found = _first_difference(recorded[k], current[k], key, same_file)
             if found:
                 return found
         return None
     if isinstance(recorded, list) and isinstance(current, list) and len(recorded) == len(current):
         for i, (a, b) in enumerate(zip(recorded, current, strict=True)):
-            found = _first_difference(a, b, f"{prefix}[{i}]")
+            found = _first_difference(a, b, f"{prefix}[{i}]", same_file)
             if found:
                 return found
         return None
+    if isinstance(current, Path):
+        return None if same_file(recorded, current) else (prefix, recorded, str(current))
     return None if recorded == current else (prefix, recorded, current)
 
 
 def stage_mismatch(stage: Stage) -> Mismatch | None:
     """How an existing stage file differs from what ``stage`` would make now (None: it matches, or
-    it is missing or not a stage file, which the stage reading it reports itself)."""
+    it is missing or not a stage file, which the stage reading it reports itself).
+
+    Config values are compared as recorded in the file; a file path is the same when it names a file
+    with the content the stage read (so a copied or moved output folder is not stale). An input file
+    whose content is not among those the stage read is a mismatch too.
+    """
     import yaml
 
-    from .store import _plain, read_meta
+    from .store import read_meta
 
     if stage.schema is None or not stage.output.is_file():
         return None
@@ -245,15 +268,28 @@ def stage_mismatch(stage: Stage) -> Mismatch | None:
         return None
     prov = meta["provenance"]
     rerun = RERUN_FROM[stage.kind]
+    read = set(prov.get("inputs", {}).values())
+    digests: dict[Path, str] = {}
+
+    def digest(p: Path) -> str | None:
+        if p not in digests and p.is_file():
+            digests[p] = sha256_file(p)
+        return digests.get(p)
+
+    def same_file(rec: Any, cur: Path) -> bool:
+        return str(rec) == str(cur) or (digest(cur) is not None and digest(cur) in read)
+
     if prov.get("config_sha256") != config_hash(stage.config):
-        current = yaml.safe_load(yaml.safe_dump(_plain(stage.config), sort_keys=False))
         text = meta["config"]
         recorded = yaml.safe_load(text.decode() if isinstance(text, bytes) else text or "{}")
         prefix = SECTION_OF[stage.kind] if stage.kind in STAGES else ""
-        key, old, new = _first_difference(recorded, current, prefix) or (prefix or stage.kind, "(another value)", "")
-        return Mismatch(stage.kind, stage.output, rerun, key=key, recorded=old, current=new)
-    for p, sha in prov.get("inputs", {}).items():
-        if Path(p).is_file() and sha256_file(p) != sha:
+        found = _first_difference(recorded, _tree(stage.config), prefix, same_file)
+        if found:
+            key, old, new = found
+            return Mismatch(stage.kind, stage.output, rerun, key=key, recorded=old, current=new)
+    for p in stage.inputs:
+        d = digest(Path(p))
+        if d is not None and d not in read:
             return Mismatch(stage.kind, stage.output, rerun, changed_input=Path(p).name)
     return None
 
