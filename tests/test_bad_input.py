@@ -552,7 +552,7 @@ def test_sigterm_during_the_report(solved, tmp_path):
 
 def test_sigterm_during_the_solve(solved, tmp_path):
     cfg_path, out = copy_run(solved, tmp_path)
-    rc, err = _terminate(["run", cfg_path, "--set", "solve.steps=300"], lambda line: "× 300 load steps" in line)
+    rc, err = _terminate(["run", cfg_path, "--set", "solve.steps=300"], lambda line: "300 load steps" in line)
     assert rc == 143, err
     last = err.strip().splitlines()[-1]
     assert last.startswith("terminated (SIGTERM) during solve (coarse)") and "kept: segmentation.h5" in last, err
