@@ -26,8 +26,8 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
 
-# the solver-scale records (issue 12's targets: locking, accuracy and time against voxel FE, Newton,
-# Krylov iterations against K/mu, the 74k sweep at the default tolerances); hours, not minutes
+# the solver-scale records (locking, accuracy and time against voxel FE, Newton, Krylov iterations against
+# K/mu, patch-pressure stability and forces, the 74k sweep at the default tolerances); hours, not minutes
 bench-scale: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[bench]"
 	$(BIN)/python benchmarks/bench_locking.py
@@ -35,7 +35,10 @@ bench-scale: $(STAMP)
 	$(BIN)/python benchmarks/bench_newton.py
 	$(BIN)/python benchmarks/bench_solve.py --conditioning 2k
 	$(BIN)/python benchmarks/bench_solve.py --conditioning 5k
-	$(BIN)/python benchmarks/bench_solve.py --infsup 1.5k
+	$(BIN)/python benchmarks/bench_solve.py --conditioning 1.5k --variants projected:1,1,3:cg_amg projected:2,2,3:mixed_amg nodal:cg_amg
+	for s in 1.5k 5k; do for p in "1,1,3 --held pressure" "2,2,3 --held pressure" "2,2,3 --held displacement"; do 	  $(BIN)/python benchmarks/bench_solve.py --infsup $$s --patch $$p || exit 1; done; done
+	$(BIN)/python benchmarks/bench_solve.py --infsup 10k --patch 2,2,3 --held displacement --thresholds 0.01 0.05
+	$(BIN)/python benchmarks/bench_patch.py
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 75k:cg_amg
 
 lint: $(STAMP)
