@@ -183,8 +183,14 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
     if not root:
         return Path(out_path)
     results.info["activation"] = _per_muscle(cfg, ramp, model)
-    save_results(out_path, results, config=cfg, inputs=inputs,
-                 attrs=stage_attrs("solve", inputs, warnings, synthetic=synthetic))
+    try:
+        save_results(out_path, results, config=cfg, inputs=inputs,
+                     attrs=stage_attrs("solve", inputs, warnings, synthetic=synthetic))
+    except OSError:  # e.g. a full disk: the solve is not lost
+        if keep is not None and keep.path.exists():
+            _LOG.warning("the converged load steps are kept in %s: run the same command again to resume from "
+                         "them", keep.path)
+        raise
     if keep is not None:
         keep.remove()
     info = results.info
