@@ -242,7 +242,7 @@ def make_mg_phantom(subject="young", shape=(96, 64, 10), pixel_cm=0.078125, slic
     imct_layout : {"parallel", "series"}
         IMCT sheets containing the fibres (default: the endomysium/perimysium-like arrangement,
         mechanically in parallel with them) or sheets normal to the fibres, which every fibre
-        crosses (in series with them) — for experiments (docs/cohorts.md).
+        crosses (in series with them) — for experiments (docs/examples.md).
     dti_noise, supersample, supersample_z, bias, fiber_spread_deg
         As in :func:`make_leg_phantom`.
     septum_cm : float, optional
