@@ -9,7 +9,10 @@ Field metadata understood by the validator:
 ``range``  (lo, hi) inclusive bounds, either may be None;
 ``gt``     strict lower bound;
 ``must_exist``  for ``Path`` fields: the file must exist;
-``doc``    one-line description with units (used in error messages and ``pixmuscle config --help``).
+``doc``    one-line description with units (used in error messages and ``pixmuscle config --help``);
+``registry``  a :class:`pixmuscle.registry.Registry`: the value is ``{key: name, …options}``,
+           validated by the chosen entry's own dataclass (``default``: the entry and values used
+           when the mapping names none).
 
 Every error is an :class:`~pixmuscle.errors.InputError` naming the key path
 (``solve.activation.to``), what was expected and what was found.
@@ -67,6 +70,8 @@ def _got(value: Any) -> str:
 def _coerce(value: Any, tp: Any, where: str, base_dir: Path, meta: Mapping) -> Any:
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
+    if meta.get("registry") is not None:  # an extension point: {key: name, …options} of the chosen entry
+        return meta["registry"].parse(value, where, base_dir, default=meta.get("default"))
     if tp is Any:
         return value
     if origin in (Union, types.UnionType):
@@ -324,10 +329,3 @@ def read_yaml(path: str | Path) -> dict:
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a mapping of sections at the top level, got {type(data).__name__}")
     return data
-
-
-def to_plain(obj: Any) -> Any:
-    """Dataclass config → plain data (for YAML dumps and hashing)."""
-    from .store import _plain
-
-    return _plain(obj)

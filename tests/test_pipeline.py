@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 from pathlib import Path
 
 import h5py
@@ -55,11 +56,23 @@ def _write(tmp_path, cfg) -> Path:
 
 
 @pytest.fixture(scope="module")
-def first_run(phantom_dir, tmp_path_factory):
+def _first_run(phantom_dir, tmp_path_factory):
+    """One full run, shared read-only: tests get copies (:func:`first_run`)."""
     tmp = tmp_path_factory.mktemp("run")
     cfg_path = _write(tmp, _config(phantom_dir, tmp / "out"))
     summary = run_subject(load_subjects(cfg_path)[0])
     return cfg_path, summary
+
+
+@pytest.fixture
+def first_run(_first_run, tmp_path):
+    """This test's own copy of the first run (config and output folder), free to change."""
+    cfg_path, summary = _first_run
+    out = tmp_path / "out"
+    shutil.copytree(summary["output_dir"], out)
+    raw = yaml.safe_load(cfg_path.read_text())
+    raw["output_dir"] = str(out)
+    return _write(tmp_path, raw), {**summary, "output_dir": str(out)}
 
 
 def test_run_end_to_end(first_run):

@@ -127,6 +127,9 @@ def fibre_law_force(model, solve_cfg, active_cfg, L0: float, stretch) -> np.ndar
     ramp = model_activation(model, active_cfg) or ActivationRamp.uniform(active_cfg.alpha_from, active_cfg.alpha_to,
                                                                           muscle)
     m = solve_cfg.materials.muscle
+    if not all(hasattr(m, k) for k in ("sigma_max", "lambda_opt")):
+        raise InputError(f"force_length: the Hill-type yardstick needs the muscle law's sigma_max and lambda_opt; "
+                         f"solve.materials.muscle is {type(m).__name__}")
     area = float(muscle.sum()) * model.cell_volume / L0
     return ramp.mean(1.0) * m.sigma_max * area * f_active(np.asarray(stretch, float) / m.lambda_opt)
 
