@@ -155,10 +155,7 @@ class RunConfig:
 
 def _section_class(name: str):
     module, cls = SECTIONS[name]
-    try:
-        return getattr(importlib.import_module(module), cls)
-    except ModuleNotFoundError:
-        raise InputError(f"config section '{name}': this part of pixmuscle is not available yet ({module})") from None
+    return getattr(importlib.import_module(module), cls)
 
 
 def _deep_merge(base: dict, over: dict) -> dict:

@@ -22,6 +22,11 @@ from typing import Any
 
 from .config import parse_section
 from .errors import InputError, Interrupted, SolverError
+from .io import force_length as _force_length
+from .io import model as _model
+from .io import muscle_forces as _muscle_forces
+from .io import results as _results
+from .io import segmentation as _segmentation
 from .store import config_hash, sha256_file
 
 #: the CLI stages in pipeline order
@@ -29,12 +34,12 @@ STAGES = ("segment", "build-model", "coarsen", "solve", "report")
 
 #: stage kind → (schema, version) of the file it writes (None: not an HDF5 stage file, always runs)
 SCHEMAS = {
-    "segment": ("pixmuscle.segmentation", 1),
-    "build-model": ("pixmuscle.model", 1),
-    "coarsen": ("pixmuscle.model", 1),
-    "solve": ("pixmuscle.results", 1),
-    "muscle-forces": ("pixmuscle.muscle_forces", 1),
-    "force-length": ("pixmuscle.force_length", 1),
+    "segment": (_segmentation.SCHEMA, _segmentation.VERSION),
+    "build-model": (_model.SCHEMA, _model.VERSION),
+    "coarsen": (_model.SCHEMA, _model.VERSION),
+    "solve": (_results.SCHEMA, _results.VERSION),
+    "muscle-forces": (_muscle_forces.SCHEMA, _muscle_forces.VERSION),
+    "force-length": (_force_length.SCHEMA, _force_length.VERSION),
     "report": None,
 }
 
@@ -467,7 +472,7 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
 
 
 def _protocol_stages(cfg: Any, which: str, mpath: Path, rpath: Path, stages: list | None) -> dict[str, Path]:
-    """The multi-solve protocols of one model (issue 18), after its solve: ``muscle_forces`` and
+    """The multi-solve protocols of one model, after its solve: ``muscle_forces`` and
     ``force_length`` sections → stages appended to ``stages`` (None: only their output paths).
 
     Returns ``{"muscle_forces_<model>": path, "force_length_<model>": path}`` for the sections present.

@@ -11,8 +11,8 @@ from pixmuscle.mechanics import materials as mat
 from pixmuscle.mechanics.materials import (
     CONNECTIVE_TISSUE,
     FAT,
-    Yeoh,
     TransverselyIsotropicMuscle,
+    Yeoh,
     material_from_config,
     tangent9,
     voigt9,

@@ -15,7 +15,9 @@ import pytest
 
 from pixmuscle.config import parse_section
 from pixmuscle.errors import InputError
+from pixmuscle.io.force_length import load_force_length
 from pixmuscle.io.model import save_model
+from pixmuscle.io.muscle_forces import load_muscle_forces
 from pixmuscle.mechanics import homogeneous
 from pixmuscle.mechanics.config import SolveConfig
 from pixmuscle.mechanics.materials import f_active
@@ -23,8 +25,8 @@ from pixmuscle.mechanics.protocols import ForceLengthConfig, MuscleForcesConfig,
 from pixmuscle.mechanics.solve import make_materials
 from pixmuscle.model.tissues import MUSCLE
 from pixmuscle.report.config import ReportConfig
-from pixmuscle.stages.force_length import load_force_length, run_force_length
-from pixmuscle.stages.muscle_forces import load_muscle_forces, run_muscle_forces
+from pixmuscle.stages.force_length import run_force_length
+from pixmuscle.stages.muscle_forces import run_muscle_forces
 from pixmuscle.stages.report import make_report
 from pixmuscle.stages.solve import run_solve
 from pixmuscle.verify.mechanics import mask_model, roller_bcs

@@ -163,7 +163,8 @@ def _segmentation(ctx: Context) -> Path | None:
     if not ctx.cfg.segmentation_qc:
         return None
     from ..imaging.nifti import load_volume
-    from .segmentation_qc import find_segmentation, plot_overlays, read_segmentation, slice_areas
+    from ..io.segmentation import read_segmentation
+    from .segmentation_qc import find_segmentation, plot_overlays, slice_areas
 
     seg_path, mri_path, note = find_segmentation(ctx.summary.get("stages", []))
     if seg_path is None:
@@ -180,7 +181,7 @@ def _segmentation(ctx: Context) -> Path | None:
             mri = load_volume(mri_path, kind="image").data
         except InputError as exc:
             note = f"MRI not shown: {exc}"
-    header, rows = slice_areas(seg["labels"], seg["muscle_id"], seg["names"], seg["affine"])
+    header, rows = slice_areas(seg["labels"], seg["muscle_id"], seg["muscle_names"], seg["affine"])
     ctx.summary["segmentation_qc"] = {"file": str(seg_path), "mri": str(mri_path) if mri_path else None, "note": note,
                                       "areas_header": header, "areas": rows}
     C.write_csv(ctx.outdir / "segmentation_areas.csv", header, rows)

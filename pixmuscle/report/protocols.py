@@ -1,7 +1,7 @@
 """Report sections of the multi-solve protocols: per-muscle force contributions and force–length curves.
 
-Inputs are the dictionaries of :func:`pixmuscle.stages.muscle_forces.load_muscle_forces` and
-:func:`pixmuscle.stages.force_length.load_force_length`; outputs are PNG/CSV files and HTML
+Inputs are the dictionaries of :func:`pixmuscle.io.muscle_forces.load_muscle_forces` and
+:func:`pixmuscle.io.force_length.load_force_length`; outputs are PNG/CSV files and HTML
 fragments (see :mod:`pixmuscle.report.html`).
 """
 

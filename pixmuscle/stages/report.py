@@ -122,7 +122,7 @@ def _write_report(res, results_path: Path, outdir: Path, final: Path, cfg: Repor
         _reference(summary, cfg)
         header, rows = D.displacement_csv(header, rows, summary)
         out["force_displacement_csv"] = str(C.write_csv(outdir / "force_displacement.csv", header, rows))
-    # per-muscle forces, force-length, DWI (issue 18): fills the tissue table's per-muscle F_max
+    # per-muscle forces, force-length, DWI: fills the tissue table's per-muscle F_max
     sections = protocol_sections(extra, outdir, summary, tissue, dpi=cfg.dpi, activation=res.info.get("activation"))
     if by_activation:
         out["tissue_table_csv"] = str(C.write_csv(outdir / "tissue_table.csv", tissue["header"], table_csv_rows(tissue)))

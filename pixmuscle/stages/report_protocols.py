@@ -1,4 +1,4 @@
-"""Report additions of issue 18, called by :func:`pixmuscle.stages.report.make_report`.
+"""Report sections of the per-muscle forces, force–length curves and DWI fit, called by :func:`pixmuscle.stages.report.make_report`.
 
 Reads the files the pipeline names in the report's ``extra`` mapping —
 ``muscle_forces`` (``muscle_forces_<model>.h5``), ``force_length`` (``force_length_<model>.h5``),
@@ -56,7 +56,7 @@ def protocol_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: 
                   "each muscle's nodes). Each muscle's α ramps linearly with the load factor s, α = start + s (end − "
                   "start), so the force curves are drawn against s, with every muscle's α named on the axis.</p>"]
     if extra.get("muscle_forces"):
-        from .muscle_forces import load_muscle_forces
+        from ..io.muscle_forces import load_muscle_forces
 
         try:
             mf = load_muscle_forces(extra["muscle_forces"])
@@ -84,7 +84,7 @@ def protocol_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: 
                     tissue["footnote"] = summary["tissue_footnote"] = footnote(
                         tissue["rule"], tissue["attach_distance"], tissue["aponeurosis_mask"], per_muscle_force=True)
     if extra.get("force_length"):
-        from .force_length import load_force_length
+        from ..io.force_length import load_force_length
 
         try:
             fl = load_force_length(extra["force_length"])
