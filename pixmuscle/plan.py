@@ -438,7 +438,7 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
         stages.append(Stage("coarsen", "coarsen", "pixmuscle.stages.coarsen:run_coarsen",
                             {"model_path": model_path, "factor": cfg.coarsen.factor, "out_path": coarse_path,
                              "config": cfg.coarsen, "synthetic": cfg.synthetic}, coarse_path, cfg.coarsen, (model_path,)))
-    results, protocols = results_paths(cfg), {}
+    results, experiments = results_paths(cfg), {}
     for which in cfg.models:
         mpath = coarse_path if which == "coarse" else model_path
         rpath = results[which]
@@ -448,7 +448,7 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
             stages.append(Stage("solve", f"solve ({which})", "pixmuscle.stages.solve:run_solve",
                                 {"model_path": mpath, "cfg": cfg.solve, "out_path": rpath, "synthetic": cfg.synthetic}, rpath, cfg.solve,
                                 (mpath,)))
-        protocols.update(_protocol_stages(cfg, which, mpath, rpath, stages if "solve" in active else None))
+        experiments.update(_experiment_stages(cfg, which, mpath, rpath, stages if "solve" in active else None))
     if "report" in active:
         # the headline is the finest model (the answer); a coarser one gives its discretisation estimate
         headline = "fine" if "fine" in cfg.models else cfg.models[0]
@@ -456,7 +456,7 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
         extra = {"title": cfg.title, "synthetic": cfg.synthetic, "subject": cfg.subject or cfg.name,
                  "compare": {k: str(v) for k, v in results.items()}}
         # per-muscle forces and force-length curves of the headline model, the DWI fit's QC maps
-        extra.update({k[:-len(f"_{headline}")]: str(v) for k, v in protocols.items() if k.endswith(f"_{headline}")})
+        extra.update({k[:-len(f"_{headline}")]: str(v) for k, v in experiments.items() if k.endswith(f"_{headline}")})
         if cfg.segment is not None and getattr(cfg.segment, "dwi", None) is not None:
             extra["dwi_qc"] = str(seg_path.with_name("segmentation_qc"))
         if cfg.params:
@@ -471,8 +471,8 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
     return stages
 
 
-def _protocol_stages(cfg: Any, which: str, mpath: Path, rpath: Path, stages: list | None) -> dict[str, Path]:
-    """The multi-solve protocols of one model, after its solve: ``muscle_forces`` and
+def _experiment_stages(cfg: Any, which: str, mpath: Path, rpath: Path, stages: list | None) -> dict[str, Path]:
+    """The multi-solve experiments of one model, after its solve: ``muscle_forces`` and
     ``force_length`` sections → stages appended to ``stages`` (None: only their output paths).
 
     Returns ``{"muscle_forces_<model>": path, "force_length_<model>": path}`` for the sections present.

@@ -23,7 +23,7 @@ __all__ = ["SCHEMA", "VERSION", "read_segmentation", "write_segmentation"]
 
 
 def write_segmentation(path, res, affine, *, config=None, inputs=(), attrs=None, masks=None):
-    """Write a :class:`pixmuscle.segmentation.pipeline.SegmentationResult` as ``pixmuscle.segmentation`` v1 (atomic).
+    """Write a :class:`pixmuscle.segmentation.volume.SegmentationResult` as ``pixmuscle.segmentation`` v1 (atomic).
 
     Layout: ``/labels`` (I,J,K) int16, ``/muscle_id`` (I,J,K) int16, ``/muscle_names`` (M,) str,
     ``/fiber`` (I,J,K,3) float32, ``/affine`` (4,4) cm, ``/qc/*`` diagnostics, and

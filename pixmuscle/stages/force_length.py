@@ -1,7 +1,7 @@
 """Stage ``force_length``: active, passive and total end force against muscle length.
 
 ``model.h5`` → ``force_length_<model>.h5``, schema ``pixmuscle.force_length`` v1
-(method: :mod:`pixmuscle.mechanics.protocols`)::
+(method: :mod:`pixmuscle.mechanics.experiments`)::
 
     /delta     (P,) cm   prescribed displacement of the swept end (shortening < 0, lengthening > 0, 0)
     /length    (P,) cm   muscle length L0 + δ
@@ -27,7 +27,7 @@ from ..errors import InputError, SolverError
 from ..io.force_length import write_force_length
 from ..io.lineage import capture_warnings, stage_attrs
 from ..io.model import load_model
-from ..mechanics.protocols import ForceLengthConfig, force_length_cases, reference_length
+from ..mechanics.experiments import ForceLengthConfig, force_length_cases, reference_length
 from ..mechanics.solve import solve
 from .muscle_forces import end_force_of
 from .solve import model_activation

@@ -1,4 +1,4 @@
-"""Stage ``muscle_forces``: the end force split by muscle (:mod:`pixmuscle.mechanics.protocols`).
+"""Stage ``muscle_forces``: the end force split by muscle (:mod:`pixmuscle.mechanics.experiments`).
 
 ``model.h5`` (+ the solve stage's ``results_<model>.h5``, reused as the all-muscle run) →
 ``muscle_forces_<model>.h5``, schema ``pixmuscle.muscle_forces`` v1::
@@ -28,14 +28,14 @@ from ..io.lineage import capture_warnings, stage_attrs
 from ..io.model import load_model
 from ..io.muscle_forces import write_muscle_forces
 from ..mechanics.activation import ActivationRamp
-from ..mechanics.protocols import MuscleForcesConfig, decompose, muscle_force_ramps
+from ..mechanics.experiments import MuscleForcesConfig, decompose, muscle_force_ramps
 from ..mechanics.solve import solve
 from ..model.tissues import MUSCLE
 from .solve import model_activation
 
 METHOD = ("contribution of a muscle = end force with only that muscle ramped (the others held at their 'from' "
           "activation) minus the baseline with every muscle held at 'from'; interaction = all-muscle force − "
-          "baseline − Σ contributions (pixmuscle.mechanics.protocols)")
+          "baseline − Σ contributions (pixmuscle.mechanics.experiments)")
 _LOG = logging.getLogger(__name__)
 
 __all__ = ["end_force_of", "run_muscle_forces"]

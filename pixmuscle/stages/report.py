@@ -35,7 +35,7 @@ from ..report.figures import Context, field_step, make_figures
 from ..report.summary import compute_summary
 from ..report.tables import table_csv_rows
 from ..store import _plain, sha256_file
-from .report_protocols import protocol_sections
+from .report_experiments import experiment_sections
 
 _LOG = logging.getLogger(__name__)
 
@@ -123,7 +123,7 @@ def _write_report(res, results_path: Path, outdir: Path, final: Path, cfg: Repor
         header, rows = displacement_csv(header, rows, summary)
         out["force_displacement_csv"] = str(write_csv(outdir / "force_displacement.csv", header, rows))
     # per-muscle forces, force-length, DWI: fills the tissue table's per-muscle F_max
-    sections = protocol_sections(extra, outdir, summary, tissue, dpi=cfg.dpi, activation=res.info.get("activation"))
+    sections = experiment_sections(extra, outdir, summary, tissue, dpi=cfg.dpi, activation=res.info.get("activation"))
     if by_activation:
         out["tissue_table_csv"] = str(write_csv(outdir / "tissue_table.csv", tissue["header"], table_csv_rows(tissue)))
 

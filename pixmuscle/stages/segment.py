@@ -3,7 +3,7 @@
 Reads the inputs named in the ``segment`` config section (:class:`~pixmuscle.segmentation.
 config.SegmentConfig`), fits the tensor of a scanner DWI series when ``segment.dwi`` is given
 (:mod:`pixmuscle.stages.dwi_qc`: FA/MD/V1 maps in the QC folder), maps the DTI onto the MRI grid
-through the affines (tensors are interpolated, never eigenvectors), runs :func:`pixmuscle.segmentation.pipeline.segment_volume`
+through the affines (tensors are interpolated, never eigenvectors), runs :func:`pixmuscle.segmentation.volume.segment_volume`
 and writes
 
 * ``<out>`` — HDF5, schema ``pixmuscle.segmentation`` v1 (docs/architecture.md);
@@ -32,7 +32,7 @@ from pixmuscle.io.lineage import capture_warnings, stage_attrs
 from pixmuscle.io.segmentation import write_segmentation
 from pixmuscle.outdir import WRITE_ERRNOS, describe_os_error, prepare_output_dir
 from pixmuscle.segmentation.config import SegmentConfig
-from pixmuscle.segmentation.pipeline import SegmentationResult, segment_volume
+from pixmuscle.segmentation.volume import SegmentationResult, segment_volume
 
 __all__ = ["run_segment", "write_qc_pngs"]
 

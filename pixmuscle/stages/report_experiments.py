@@ -17,7 +17,7 @@ from ..errors import InputError
 
 _LOG = logging.getLogger(__name__)
 
-__all__ = ["protocol_sections"]
+__all__ = ["experiment_sections"]
 
 
 def _fmax_step(summary: dict) -> int | None:
@@ -30,7 +30,7 @@ def _fmax_step(summary: dict) -> int | None:
     return int(np.flatnonzero(ok)[np.argmax(f[ok])]) if ok.any() else None
 
 
-def protocol_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: int = 120,
+def experiment_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: int = 120,
                       activation: dict | None = None) -> list[str]:
     """HTML sections: activation per muscle, and the per-muscle forces, force–length curves and DWI
     fit named in ``extra``.
@@ -42,8 +42,8 @@ def protocol_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: 
     ``summary["outputs"]`` entries and warnings to ``summary["warnings"]``.
     """
     from ..report.dwi import dwi_section
+    from ..report.experiments import force_length_section, muscle_forces_section
     from ..report.html import table
-    from ..report.protocols import force_length_section, muscle_forces_section
 
     outdir = Path(outdir)
     warnings = summary["warnings"]
