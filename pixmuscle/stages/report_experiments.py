@@ -31,7 +31,7 @@ def _fmax_step(summary: dict) -> int | None:
 
 
 def experiment_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: int = 120,
-                      activation: dict | None = None) -> list[str]:
+                        activation: dict | None = None) -> list[str]:
     """HTML sections: activation per muscle, and the per-muscle forces, force–length curves and DWI
     fit named in ``extra``.
 
