@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import json
-import shutil
 from pathlib import Path
 
 import h5py
@@ -55,24 +54,16 @@ def _write(tmp_path, cfg) -> Path:
     return p
 
 
-@pytest.fixture(scope="module")
-def _first_run(phantom_dir, tmp_path_factory):
-    """One full run, shared read-only: tests get copies (:func:`first_run`)."""
-    tmp = tmp_path_factory.mktemp("run")
-    cfg_path = _write(tmp, _config(phantom_dir, tmp / "out"))
+@pytest.fixture
+def first_run(phantom_dir, tmp_path):
+    """A full run of this test's own (the tiny phantom runs in seconds): tests may change it freely.
+
+    Not shared between tests: its outputs record their absolute input paths, so a copy in another
+    folder would not be the same run, and a shared one would make the tests depend on their order.
+    """
+    cfg_path = _write(tmp_path, _config(phantom_dir, tmp_path / "out"))
     summary = run_subject(load_subjects(cfg_path)[0])
     return cfg_path, summary
-
-
-@pytest.fixture
-def first_run(_first_run, tmp_path):
-    """This test's own copy of the first run (config and output folder), free to change."""
-    cfg_path, summary = _first_run
-    out = tmp_path / "out"
-    shutil.copytree(summary["output_dir"], out)
-    raw = yaml.safe_load(cfg_path.read_text())
-    raw["output_dir"] = str(out)
-    return _write(tmp_path, raw), {**summary, "output_dir": str(out)}
 
 
 def test_run_end_to_end(first_run):
