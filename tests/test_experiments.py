@@ -1,4 +1,4 @@
-"""Protocols of several solves (issue 18): per-muscle force contributions and force–length sweeps.
+"""Experiments of several solves: per-muscle force contributions and force–length sweeps.
 
 Truths (:mod:`pixmuscle.mechanics.homogeneous`, the material law alone, no discretisation):
 
