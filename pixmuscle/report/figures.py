@@ -180,7 +180,7 @@ def _segmentation(ctx: Context) -> Path | None:
         return None
     try:
         seg = read_segmentation(seg_path)
-    except (KeyError, OSError) as exc:
+    except (KeyError, OSError, InputError) as exc:
         ctx.summary["segmentation_qc"] = {"note": f"segmentation file {seg_path} not readable ({exc})"}
         return None
     mri = None
