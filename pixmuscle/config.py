@@ -263,6 +263,12 @@ def check_key(cls: type, dotted: str, value: Any, where: str, base_dir: Path | s
                 hint = f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(fields)}"
                 raise InputError(f"{key}: unknown key{hint}")
             tp, meta = typing.get_type_hints(tp)[name], fields[name].metadata
+            reg = meta.get("registry")
+            if reg is not None and i + 1 < len(parts):  # into an extension point: its name, or the default entry's options
+                if parts[i + 1] == reg.key and i + 2 == len(parts):
+                    reg.get(value, ".".join([where, *parts]) if where else dotted)
+                    return value
+                tp, meta = reg.entry_of(meta["default"]).options, {}
         elif origin in (dict, Mapping):
             args = typing.get_args(tp)
             tp = args[1] if args else Any
