@@ -130,7 +130,7 @@ def bench_multiphase(ph, d, covered, repeats=3):
 
 def bench_pipeline(ph, d, covered, repeats=2):
     from pixmuscle.segmentation.config import SegmentConfig
-    from pixmuscle.segmentation.pipeline import segment_volume
+    from pixmuscle.segmentation.volume import segment_volume
 
     cfg = SegmentConfig(seeds=seeds_of(ph, 1), seed_units="voxel")
 

@@ -39,27 +39,9 @@ def _out(*paths) -> None:
         sys.stdout.write(f"{p}\n")
     sys.stdout.flush()
 
-#: which issue delivers each stage module (for the "not available yet" message)
-_PENDING = {
-    "pixmuscle.stages.segment": "imaging and segmentation",
-    "pixmuscle.stages.build_model": "model construction and solver",
-    "pixmuscle.stages.coarsen": "model construction and solver",
-    "pixmuscle.stages.solve": "model construction and solver",
-    "pixmuscle.stages.report": "pipeline and reports",
-    "pixmuscle.verify.mechanics": "model construction and solver",
-    "pixmuscle.synth": "imaging and segmentation",
-}
-
-
 def _load(module: str):
-    """Import a stage module; one clear line and exit 2 if that part has not landed yet."""
-    try:
-        return importlib.import_module(module)
-    except ModuleNotFoundError as exc:
-        if exc.name and (exc.name == module or module.startswith(exc.name + ".") or exc.name.startswith(module)):
-            typer.echo(f"pixmuscle: '{module}' is not available yet (the {_PENDING.get(module, 'corresponding')} issue has not landed)", err=True)
-            raise typer.Exit(2) from None
-        raise
+    """Import a stage module when its command runs (the CLI starts without loading every stage)."""
+    return importlib.import_module(module)
 
 
 def _guard(fn: Callable) -> Callable:

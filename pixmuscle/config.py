@@ -9,7 +9,10 @@ Field metadata understood by the validator:
 ``range``  (lo, hi) inclusive bounds, either may be None;
 ``gt``     strict lower bound;
 ``must_exist``  for ``Path`` fields: the file must exist;
-``doc``    one-line description with units (used in error messages and ``pixmuscle config --help``).
+``doc``    one-line description with units (used in error messages and ``pixmuscle config --help``);
+``registry``  a :class:`pixmuscle.registry.Registry`: the value is ``{key: name, …options}``,
+           validated by the chosen entry's own dataclass (``default``: the entry and values used
+           when the mapping names none).
 
 Every error is an :class:`~pixmuscle.errors.InputError` naming the key path
 (``solve.activation.to``), what was expected and what was found.
@@ -67,6 +70,8 @@ def _got(value: Any) -> str:
 def _coerce(value: Any, tp: Any, where: str, base_dir: Path, meta: Mapping) -> Any:
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
+    if meta.get("registry") is not None:  # an extension point: {key: name, …options} of the chosen entry
+        return meta["registry"].parse(value, where, base_dir, default=meta.get("default"))
     if tp is Any:
         return value
     if origin in (Union, types.UnionType):
@@ -258,6 +263,12 @@ def check_key(cls: type, dotted: str, value: Any, where: str, base_dir: Path | s
                 hint = f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(fields)}"
                 raise InputError(f"{key}: unknown key{hint}")
             tp, meta = typing.get_type_hints(tp)[name], fields[name].metadata
+            reg = meta.get("registry")
+            if reg is not None and i + 1 < len(parts):  # into an extension point: its name, or the default entry's options
+                if parts[i + 1] == reg.key and i + 2 == len(parts):
+                    reg.get(value, ".".join([where, *parts]) if where else dotted)
+                    return value
+                tp, meta = reg.entry_of(meta["default"]).options, {}
         elif origin in (dict, Mapping):
             args = typing.get_args(tp)
             tp = args[1] if args else Any
@@ -324,10 +335,3 @@ def read_yaml(path: str | Path) -> dict:
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a mapping of sections at the top level, got {type(data).__name__}")
     return data
-
-
-def to_plain(obj: Any) -> Any:
-    """Dataclass config → plain data (for YAML dumps and hashing)."""
-    from .store import _plain
-
-    return _plain(obj)

@@ -12,8 +12,8 @@ Root YAML keys (all optional except what the chosen stages need)::
     build_model: {...}       # pixmuscle.model.config.BuildModelConfig
     coarsen: {...}           # pixmuscle.model.config.CoarsenConfig
     solve: {...}             # pixmuscle.mechanics.config.SolveConfig
-    muscle_forces: {...}     # pixmuscle.mechanics.protocols.MuscleForcesConfig (end force split by muscle)
-    force_length: {...}      # pixmuscle.mechanics.protocols.ForceLengthConfig (end-displacement sweep)
+    muscle_forces: {...}     # pixmuscle.mechanics.experiments.MuscleForcesConfig (end force split by muscle)
+    force_length: {...}      # pixmuscle.mechanics.experiments.ForceLengthConfig (end-displacement sweep)
     report: {...}            # pixmuscle.report.config.ReportConfig
     subjects:                # optional cohort: each entry = name + section overrides (deep-merged)
       - {name: young, build_model: {labels: young_labels.nii.gz}}
@@ -61,8 +61,8 @@ SECTIONS = {
     "build_model": ("pixmuscle.model.config", "BuildModelConfig"),
     "coarsen": ("pixmuscle.model.config", "CoarsenConfig"),
     "solve": ("pixmuscle.mechanics.config", "SolveConfig"),
-    "muscle_forces": ("pixmuscle.mechanics.protocols", "MuscleForcesConfig"),
-    "force_length": ("pixmuscle.mechanics.protocols", "ForceLengthConfig"),
+    "muscle_forces": ("pixmuscle.mechanics.experiments", "MuscleForcesConfig"),
+    "force_length": ("pixmuscle.mechanics.experiments", "ForceLengthConfig"),
     "report": ("pixmuscle.report.config", "ReportConfig"),
 }
 _ROOT_KEYS = {"title", "synthetic", "output_dir", "models", "subjects", "study", "execution", *SECTIONS}
@@ -155,10 +155,7 @@ class RunConfig:
 
 def _section_class(name: str):
     module, cls = SECTIONS[name]
-    try:
-        return getattr(importlib.import_module(module), cls)
-    except ModuleNotFoundError:
-        raise InputError(f"config section '{name}': this part of pixmuscle is not available yet ({module})") from None
+    return getattr(importlib.import_module(module), cls)
 
 
 def _deep_merge(base: dict, over: dict) -> dict:
@@ -559,7 +556,7 @@ def _write_summaries(run: RunConfig, summaries: list[dict], failures: dict[str, 
         if not sums and not fail_list:  # e.g. --until segment: no subject has a report yet
             return []
         return [str(cohort_summary(sums, root, failures=fail_list))]
-    from .report.study import study_summary
+    from .report.study_page import study_summary
 
     rows = []
     for c in run.cases:

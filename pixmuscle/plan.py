@@ -22,6 +22,11 @@ from typing import Any
 
 from .config import parse_section
 from .errors import InputError, Interrupted, SolverError
+from .io import force_length as _force_length
+from .io import model as _model
+from .io import muscle_forces as _muscle_forces
+from .io import results as _results
+from .io import segmentation as _segmentation
 from .store import config_hash, sha256_file
 
 #: the CLI stages in pipeline order
@@ -29,12 +34,12 @@ STAGES = ("segment", "build-model", "coarsen", "solve", "report")
 
 #: stage kind → (schema, version) of the file it writes (None: not an HDF5 stage file, always runs)
 SCHEMAS = {
-    "segment": ("pixmuscle.segmentation", 1),
-    "build-model": ("pixmuscle.model", 1),
-    "coarsen": ("pixmuscle.model", 1),
-    "solve": ("pixmuscle.results", 1),
-    "muscle-forces": ("pixmuscle.muscle_forces", 1),
-    "force-length": ("pixmuscle.force_length", 1),
+    "segment": (_segmentation.SCHEMA, _segmentation.VERSION),
+    "build-model": (_model.SCHEMA, _model.VERSION),
+    "coarsen": (_model.SCHEMA, _model.VERSION),
+    "solve": (_results.SCHEMA, _results.VERSION),
+    "muscle-forces": (_muscle_forces.SCHEMA, _muscle_forces.VERSION),
+    "force-length": (_force_length.SCHEMA, _force_length.VERSION),
     "report": None,
 }
 
@@ -433,7 +438,7 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
         stages.append(Stage("coarsen", "coarsen", "pixmuscle.stages.coarsen:run_coarsen",
                             {"model_path": model_path, "factor": cfg.coarsen.factor, "out_path": coarse_path,
                              "config": cfg.coarsen, "synthetic": cfg.synthetic}, coarse_path, cfg.coarsen, (model_path,)))
-    results, protocols = results_paths(cfg), {}
+    results, experiments = results_paths(cfg), {}
     for which in cfg.models:
         mpath = coarse_path if which == "coarse" else model_path
         rpath = results[which]
@@ -443,7 +448,7 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
             stages.append(Stage("solve", f"solve ({which})", "pixmuscle.stages.solve:run_solve",
                                 {"model_path": mpath, "cfg": cfg.solve, "out_path": rpath, "synthetic": cfg.synthetic}, rpath, cfg.solve,
                                 (mpath,)))
-        protocols.update(_protocol_stages(cfg, which, mpath, rpath, stages if "solve" in active else None))
+        experiments.update(_experiment_stages(cfg, which, mpath, rpath, stages if "solve" in active else None))
     if "report" in active:
         # the headline is the finest model (the answer); a coarser one gives its discretisation estimate
         headline = "fine" if "fine" in cfg.models else cfg.models[0]
@@ -451,7 +456,7 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
         extra = {"title": cfg.title, "synthetic": cfg.synthetic, "subject": cfg.subject or cfg.name,
                  "compare": {k: str(v) for k, v in results.items()}}
         # per-muscle forces and force-length curves of the headline model, the DWI fit's QC maps
-        extra.update({k[:-len(f"_{headline}")]: str(v) for k, v in protocols.items() if k.endswith(f"_{headline}")})
+        extra.update({k[:-len(f"_{headline}")]: str(v) for k, v in experiments.items() if k.endswith(f"_{headline}")})
         if cfg.segment is not None and getattr(cfg.segment, "dwi", None) is not None:
             extra["dwi_qc"] = str(seg_path.with_name("segmentation_qc"))
         if cfg.params:
@@ -466,8 +471,8 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
     return stages
 
 
-def _protocol_stages(cfg: Any, which: str, mpath: Path, rpath: Path, stages: list | None) -> dict[str, Path]:
-    """The multi-solve protocols of one model (issue 18), after its solve: ``muscle_forces`` and
+def _experiment_stages(cfg: Any, which: str, mpath: Path, rpath: Path, stages: list | None) -> dict[str, Path]:
+    """The multi-solve experiments of one model, after its solve: ``muscle_forces`` and
     ``force_length`` sections → stages appended to ``stages`` (None: only their output paths).
 
     Returns ``{"muscle_forces_<model>": path, "force_length_<model>": path}`` for the sections present.

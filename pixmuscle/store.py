@@ -65,7 +65,9 @@ def _plain(obj: Any) -> Any:
     import dataclasses
 
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: _plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        named = getattr(obj, "registry_key", None)  # a registered entry: {key: name, …options}
+        head = {named[0]: named[1]} if named else {}
+        return head | {f.name: _plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
     if isinstance(obj, Mapping):
         return {(k if isinstance(k, (str, int)) else str(k)): _plain(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):

@@ -11,8 +11,8 @@ from pixmuscle.mechanics import materials as mat
 from pixmuscle.mechanics.materials import (
     CONNECTIVE_TISSUE,
     FAT,
-    CubicIsotropic,
     TransverselyIsotropicMuscle,
+    Yeoh,
     material_from_config,
     tangent9,
     voigt9,
@@ -176,7 +176,7 @@ def test_small_strain_limit_is_linear_isotropic_elasticity():
     """At F = I, P = 0, so A = ∂σ/∂ε: the Lamé tensor with μ = 2 C10 (Ī1 − 3 ≈ 4 dev ε : dev ε),
     bulk modulus K; for the muscle matrix μ = 2(C10 + C01) (Mooney–Rivlin)."""
     F = EYE[None]
-    for m in (CONNECTIVE_TISSUE, FAT, CubicIsotropic(C10=1.0, C20=0.0, C30=0.0, K=7.0)):
+    for m in (CONNECTIVE_TISSUE, FAT, Yeoh(C10=1.0, C20=0.0, C30=0.0, K=7.0)):
         _, A = m.stress_tangent(F)
         np.testing.assert_allclose(A[0], lame_tensor(2 * m.C10, m.K), rtol=0, atol=1e-10 * m.K)
     muscle = TransverselyIsotropicMuscle()
@@ -322,14 +322,14 @@ def test_bad_input_raises_input_error():
     with pytest.raises(InputError, match=r"\(n, 3, 3\)"):
         CONNECTIVE_TISSUE.stress(np.eye(3))
     with pytest.raises(InputError, match="K"):
-        CubicIsotropic(1.0, 0.0, 0.0, -1.0)
+        Yeoh(1.0, 0.0, 0.0, -1.0)
     with pytest.raises(InputError, match="lambda_opt"):
         TransverselyIsotropicMuscle(lambda_opt=0.0)
 
 
 def test_material_from_config():
-    assert material_from_config("fat") == FAT == CubicIsotropic(3, 8, 80, 5000)
-    assert material_from_config("connective_tissue", None) == CubicIsotropic(30, 80, 800, 50000)
+    assert material_from_config("fat") == FAT == Yeoh(3, 8, 80, 5000)
+    assert material_from_config("connective_tissue", None) == Yeoh(30, 80, 800, 50000)
     m = material_from_config("muscle", {"lambda_opt": 1.4, "sigma_max": 25})
     assert m == TransverselyIsotropicMuscle(lambda_opt=1.4, sigma_max=25.0)
     assert (m.C10, m.C01, m.C20, m.C02, m.C11, m.K) == (6.43, -3.8, 0.94, 0.0005, -0.0043, 5000.0)

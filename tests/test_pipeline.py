@@ -54,10 +54,14 @@ def _write(tmp_path, cfg) -> Path:
     return p
 
 
-@pytest.fixture(scope="module")
-def first_run(phantom_dir, tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("run")
-    cfg_path = _write(tmp, _config(phantom_dir, tmp / "out"))
+@pytest.fixture
+def first_run(phantom_dir, tmp_path):
+    """A full run of this test's own (the tiny phantom runs in seconds): tests may change it freely.
+
+    Not shared between tests: its outputs record their absolute input paths, so a copy in another
+    folder would not be the same run, and a shared one would make the tests depend on their order.
+    """
+    cfg_path = _write(tmp_path, _config(phantom_dir, tmp_path / "out"))
     summary = run_subject(load_subjects(cfg_path)[0])
     return cfg_path, summary
 

@@ -11,7 +11,7 @@ from pixmuscle.config import parse_section
 from pixmuscle.errors import InputError
 from pixmuscle.imaging.nifti import load_volume
 from pixmuscle.segmentation.config import SegmentConfig
-from pixmuscle.segmentation.pipeline import _check_distinct_seeds, seeds_to_voxels
+from pixmuscle.segmentation.volume import _check_distinct_seeds, seeds_to_voxels
 from pixmuscle.stages.segment import seeds_in_cm
 
 

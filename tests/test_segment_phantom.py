@@ -11,7 +11,7 @@ from pixmuscle.errors import InputError
 from pixmuscle.imaging.dti import resample_tensor_to_grid, tensor_from_components
 from pixmuscle.imaging.nifti import load_volume
 from pixmuscle.segmentation.config import MultiphaseConfig, SegmentConfig
-from pixmuscle.segmentation.pipeline import segment_volume
+from pixmuscle.segmentation.volume import segment_volume
 from pixmuscle.store import open_stage
 from pixmuscle.synth.leg import make_leg_phantom
 

@@ -2,7 +2,8 @@
 
 Every class is a frozen dataclass validated by :func:`pixmuscle.config.parse_section`; defaults are
 the paper's choices (cubic B-spline kernel, linear basis, a/h = 1.65; Table 1 and 2 material
-constants, with σ_max = 30 N/cm² and λ̂0 = 1.0 from the errata). Example::
+constants, with σ_max = 30 N/cm² and λ̂0 = 1.0 from the errata; the material sections are derived
+from the registered laws' own dataclasses). Example::
 
     solve:
       steps: 10
@@ -20,9 +21,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
-from .materials import CONNECTIVE_TISSUE, FAT, MUSCLE
+from .materials import DEFAULTS, LAWS
 
 #: most load steps of one solve (docs/failures.md): a sweep needs 10–20; cut-backs refine by themselves
 MAX_STEPS = 1000
@@ -75,49 +76,26 @@ class BoundaryCondition:
         return comps, values
 
 
-@dataclasses.dataclass(frozen=True)
-class MuscleParams:
-    """Transversely isotropic muscle (paper eqs. 22–26, Table 2 as corrected in the errata), N/cm²."""
-
-    C10: float = MUSCLE.C10
-    C01: float = MUSCLE.C01
-    C20: float = MUSCLE.C20
-    C02: float = MUSCLE.C02
-    C11: float = MUSCLE.C11
-    K: float = field(default=MUSCLE.K, metadata={"gt": 0, "doc": "bulk modulus, N/cm²"})
-    sigma_max: float = field(default=MUSCLE.sigma_max, metadata={"range": (0.0, None), "doc": "maximum isometric fibre stress, N/cm²"})
-    lambda_opt: float = field(default=MUSCLE.lambda_opt, metadata={"gt": 0, "doc": "optimal fibre stretch λ̂0 (1.0: image configuration at optimal length)"})
-    gamma1: float = MUSCLE.gamma1
-    gamma2: float = MUSCLE.gamma2
-
-
-@dataclasses.dataclass(frozen=True)
-class ConnectiveTissueParams:
-    """Cubic isotropic hyperelastic model (paper eq. 27, Table 1), N/cm²."""
-
-    C10: float = CONNECTIVE_TISSUE.C10
-    C20: float = CONNECTIVE_TISSUE.C20
-    C30: float = CONNECTIVE_TISSUE.C30
-    K: float = field(default=CONNECTIVE_TISSUE.K, metadata={"gt": 0, "doc": "bulk modulus, N/cm²"})
-
-
-@dataclasses.dataclass(frozen=True)
-class FatParams:
-    """Cubic isotropic model for fat: Table 1 (ten times softer than connective tissue), N/cm²."""
-
-    C10: float = FAT.C10
-    C20: float = FAT.C20
-    C30: float = FAT.C30
-    K: float = field(default=FAT.K, metadata={"gt": 0, "doc": "bulk modulus, N/cm²"})
+def _law(tissue: str):
+    """Field of ``solve.materials.<tissue>``: ``{law: <name>, …constants}``, default the tissue's law."""
+    default = DEFAULTS[tissue]
+    return field(default=default, metadata={"registry": LAWS, "default": default,
+                                            "doc": f"{{law: name, …constants}}: material law ({', '.join(LAWS.names())}), "
+                                                   f"default {LAWS.entry_of(default).name} with the paper's constants"})
 
 
 @dataclasses.dataclass(frozen=True)
 class MaterialsConfig:
-    """Material constants per tissue (N/cm²)."""
+    """Material law and constants per tissue (N/cm²), :mod:`pixmuscle.mechanics.materials`.
 
-    muscle: MuscleParams = field(default_factory=MuscleParams)
-    connective_tissue: ConnectiveTissueParams = field(default_factory=ConnectiveTissueParams)
-    fat: FatParams = field(default_factory=FatParams)
+    Each entry is ``{law: <name>, …constants}``; without ``law`` the tissue's default law (muscle:
+    ``blemker``, eqs. 22–26; connective tissue and fat: ``yeoh``, eq. 27) with the constants given
+    overriding Tables 1–2, e.g. ``muscle: {sigma_max: 25}``.
+    """
+
+    muscle: Any = _law("muscle")
+    connective_tissue: Any = _law("connective_tissue")
+    fat: Any = _law("fat")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -74,7 +74,7 @@ def uniaxial_bar(material, stretch, area0, *, fiber=(0.0, 0.0, 1.0), activation=
 
     Parameters
     ----------
-    material : CubicIsotropic or TransverselyIsotropicMuscle
+    material : Yeoh or TransverselyIsotropicMuscle
     stretch : float
         Axial stretch λ = F_zz (> 0).
     area0 : float
@@ -156,7 +156,7 @@ def homogeneous_min_energy(material, F_constraints, area0, *, fiber=(0.0, 0.0, 1
 
     Parameters
     ----------
-    material : CubicIsotropic or TransverselyIsotropicMuscle
+    material : Yeoh or TransverselyIsotropicMuscle
     F_constraints : float or (3,) array_like
         Axial stretch λ (then the third row is (0, 0, λ)), or the whole third row
         (F_zx, F_zy, F_zz) with F_zz > 0.

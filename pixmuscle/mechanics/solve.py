@@ -5,7 +5,7 @@ Pipeline of :func:`solve`:
 1. RK shape functions (cubic B-spline box kernel, linear basis, a = (a/h)·spacing per axis) at the
    unique cell faces → SCNI smoothed gradient operators G_k (:mod:`.scni`);
 2. materials per node from the tissue code (muscle: transversely isotropic with per-node fibre and
-   activation α; connective tissue and fat: cubic isotropic), constants from ``solve.materials``;
+   activation α; connective tissue and fat: Yeoh), laws and constants from ``solve.materials``;
 3. constant parts of the stiffness: NSNI stabilisation (:mod:`.stabilization`) and penalty
    (:mod:`.boundary`), assembled once on the fixed block pattern (:mod:`.assembly`);
 4. incremental loading: α ramped from ``activation.from`` to ``activation.to`` and prescribed
@@ -29,12 +29,13 @@ import scipy.sparse as sp
 
 from ..errors import InputError, SolverError
 from ..model.model import Model
-from ..model.tissues import CONNECTIVE_TISSUE, FAT, MUSCLE, NODE_TISSUES, TISSUE_NAMES
+from ..model.tissues import MUSCLE, NODE_TISSUES, TISSUE_NAMES
 from . import newton as _newton
 from .assembly import Assembler, support_pattern
 from .boundary import SIGN_CONVENTION, Constraints, build_constraints, penalty_number
 from .config import SolveConfig, SupportConfig
 from .linsolve import make_solver
+from .materials import LAWS, needs
 from .results import Results, cauchy_voigt, max_principal
 from .scni import SCNI, build_scni, cell_faces, face_incidence, support_radius
 from .stabilization import stabilization_operators, stabilization_stiffness
@@ -44,15 +45,29 @@ from .volumetric import PatchProjection, VolumetricState
 _LOG = logging.getLogger(__name__)
 
 
-def make_materials(cfg_materials) -> dict:
-    """Material object per tissue code from ``solve.materials`` (paper Tables 1 and 2)."""
-    from .materials import material_from_config
+def make_materials(cfg_materials, projected: bool = False) -> dict:
+    """Material law per tissue code from ``solve.materials`` (defaults: paper Tables 1 and 2).
 
-    return {
-        MUSCLE: material_from_config("muscle", dataclasses.asdict(cfg_materials.muscle)),
-        CONNECTIVE_TISSUE: material_from_config("connective_tissue", dataclasses.asdict(cfg_materials.connective_tissue)),
-        FAT: material_from_config("fat", dataclasses.asdict(cfg_materials.fat)),
-    }
+    ``projected``: the projected volumetric energy replaces each law's K/2 (J − 1)², so every law
+    must have that split (a ``bulk_modulus``).
+    """
+    out = {code: getattr(cfg_materials, TISSUE_NAMES[code]) for code in NODE_TISSUES}
+    for code, mat in out.items():
+        if projected and getattr(mat, "bulk_modulus", None) is None:
+            raise InputError(f"solve.materials.{TISSUE_NAMES[code]}: law {LAWS.entry_of(mat).name!r} has no volumetric "
+                             "term K/2 (J - 1)^2 to project; set solve.volumetric.method: nodal")
+    return out
+
+
+def material_kw(mat, fiber: np.ndarray, activation) -> dict:
+    """Keywords a law needs (:func:`pixmuscle.mechanics.materials.needs`): fibre (n, 3) and activation α."""
+    wanted = needs(mat)
+    kw = {}
+    if "fiber" in wanted:
+        kw["fiber"] = fiber
+    if "activation" in wanted:
+        kw["activation"] = activation
+    return kw
 
 
 @dataclasses.dataclass
@@ -170,11 +185,10 @@ class MechanicalSystem:
         return self._assemblers[key]
 
     def _material_kw(self, code, idx, alpha):
-        if code == MUSCLE:
-            # per-node activation (issue 18): ``alpha`` is then the ramp parameter s of the ActivationRamp
-            act = alpha if self.activation is None else self.activation.at(alpha)[idx]
-            return {"fiber": self.fiber[idx], "activation": act}
-        return {}
+        mat = next(m for c, m, _ in self.groups if c == code)
+        # with per-node activation, ``alpha`` is the ramp parameter s of the ActivationRamp
+        act = alpha if self.activation is None or "activation" not in needs(mat) else self.activation.at(alpha)[idx]
+        return material_kw(mat, self.fiber[idx], act)
 
     def material_response(self, F: np.ndarray, alpha: float, tangent: bool = True):
         """P (N, 3, 3) and, if ``tangent``, A (N, 3, 3, 3, 3) per node, grouped by material."""
@@ -361,13 +375,13 @@ def build_system(model: Model, cfg: SolveConfig) -> tuple[MechanicalSystem, dict
     sup, info["supports_enlarged"] = node_supports(model, cfg)
     scni = build_scni(model.X, model.ijk, model.spacing, sup, face_gradients=stab, **rk_kw)
     info["scni_s"] = time.perf_counter() - t0
-    materials = make_materials(cfg.materials)
+    materials = make_materials(cfg.materials, projected=cfg.volumetric.method == "projected")
     ident = np.broadcast_to(np.eye(3), (model.n_nodes, 3, 3))
     present = [c for c in NODE_TISSUES if np.any(model.tissue == c)]
     A0 = np.empty((model.n_nodes, 3, 3, 3, 3))
     for c in present:
         idx = np.flatnonzero(model.tissue == c)
-        kw = {"fiber": model.fiber[idx], "activation": 0.0} if c == MUSCLE else {}
+        kw = material_kw(materials[c], model.fiber[idx], 0.0)
         A0[idx] = materials[c].stress_tangent(np.ascontiguousarray(ident[idx]), **kw)[1]
     t3 = time.perf_counter()
     beta = cfg.penalty.beta if cfg.penalty.beta is not None else penalty_number(A0, model.spacing, cfg.penalty.factor)

@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from . import html as H
 from .curves import plot_force_activation, write_csv
+from .html import esc, html_units, img_tag, page, table
 
 #: (column header, key of the summary's ``compared`` quantities) of the quantities compared
 QUANTITIES = (
@@ -129,7 +129,7 @@ def cohort_summary(reports: Sequence[Mapping[str, Any]], outdir: str | Path, *, 
         png = plot_force_activation(curves, outdir / "cohort_force_activation.png", dpi=dpi,
                                     title="Force vs activation by subject")
 
-    parts = [f"<h1>{H.esc(title)}</h1>"]
+    parts = [f"<h1>{esc(title)}</h1>"]
     if any(s.get("synthetic") for s in sums):
         parts.append('<div class="note"><b>Synthetic inputs.</b> At least one subject was built from synthetic '
                      "phantom images, not subject MRI/DTI.</div>")
@@ -147,7 +147,7 @@ def cohort_summary(reports: Sequence[Mapping[str, Any]], outdir: str | Path, *, 
             return None if (r := _ratio(x, r0)) is None else f"{100 * r:.1f}%"
 
         for qi, (h, _) in enumerate(QUANTITIES):
-            row = [H.html_units(h)]
+            row = [html_units(h)]
             for i in range(len(sums)):
                 row += [values[i][qi]] + ([ref_values[i][qi]] if has_ref else [])
             for i in range(1, len(sums)):
@@ -156,7 +156,7 @@ def cohort_summary(reports: Sequence[Mapping[str, Any]], outdir: str | Path, *, 
         t_rows.append(["status"] + sum(([s["status"]] + ([""] if has_ref else []) for s in sums), [])
                       + [""] * ((len(labels) - 1) * (2 if has_ref else 1)))
         parts.append("<h2>Volumes and force (paper Table 3 layout)</h2>")
-        parts.append(H.table(t_head, t_rows))
+        parts.append(table(t_head, t_rows))
         parts.append('<p class="foot">Volumes = node count × cell volume. F_max = largest end force over converged '
                      "steps (whole model). Ratios are to the first subject. IMCT excludes the aponeurosis (when the "
                      "segment stage had an aponeurosis mask) and the skin, as paper Table 3; the Table 3 total is the muscle "
@@ -165,18 +165,18 @@ def cohort_summary(reports: Sequence[Mapping[str, Any]], outdir: str | Path, *, 
                      "report. Data: <code>cohort.csv</code>.</p>")
     if png is not None:
         parts.append("<h2>Force–activation</h2>")
-        parts.append(H.img_tag(png, "force vs activation by subject"))
+        parts.append(img_tag(png, "force vs activation by subject"))
     warn = [(s["label"], w) for s in sums for w in s.get("warnings", [])]
     if failures or warn:
         parts.append("<h2>Failures and warnings</h2><ul>")
-        parts += [f'<li class="fail">{H.esc(f.get("name", "?"))}: {H.esc(f.get("error", ""))}</li>' for f in failures]
-        parts += [f"<li>{H.esc(lab)}: {H.esc(w)}</li>" for lab, w in warn]
+        parts += [f'<li class="fail">{esc(f.get("name", "?"))}: {esc(f.get("error", ""))}</li>' for f in failures]
+        parts += [f"<li>{esc(lab)}: {esc(w)}</li>" for lab, w in warn]
         parts.append("</ul>")
     links = [(s["label"], s.get("outputs", {}).get("index_html")) for s in sums]
     if any(p for _, p in links):
         parts.append("<h2>Subject reports</h2><ul>")
-        parts += [f'<li><a href="{H.esc(_rel(p, outdir))}">{H.esc(lab)}</a></li>' for lab, p in links if p]
+        parts += [f'<li><a href="{esc(_rel(p, outdir))}">{esc(lab)}</a></li>' for lab, p in links if p]
         parts.append("</ul>")
     out = outdir / "cohort.html"
-    out.write_text(H.page(title, parts), encoding="utf-8")
+    out.write_text(page(title, parts), encoding="utf-8")
     return out

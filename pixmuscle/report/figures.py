@@ -15,8 +15,16 @@ import numpy as np
 
 from ..errors import InputError
 from ..mechanics.results import Results
-from . import curves as C
 from .config import ReportConfig
+from .curves import (
+    axial_forces,
+    end_force,
+    load_factor_label,
+    plot_force_activation,
+    plot_newton,
+    select_force_sets,
+    write_csv,
+)
 
 #: sections of the page, in order (key → heading)
 SECTIONS = {
@@ -102,14 +110,14 @@ def _force_activation(ctx: Context) -> Path | None:
                        if path is not None and Path(p).resolve() == path.resolve() and len(compare) > 1), None)
     prefix = f"{main_label}: " if main_label else ""
     # muscles ramped differently: against the load factor, each muscle's α named on the axis
-    by_load = C.load_factor_label((res.info or {}).get("activation"))
+    by_load = load_factor_label((res.info or {}).get("activation"))
     x = res.load_factor if by_load else res.alpha
     curves = {f"{prefix}{s} end": (x, np.array(summary["curve"]["axial_force_N"][s], float), res.converged)
               for s in summary["force_sets"]}
     curves.update(_compare_curves(compare, path, ctx, by_load=bool(by_load)))
     for lab, c in dict(extra.get("curves") or {}).items():
         curves[str(lab)] = tuple(c)
-    return C.plot_force_activation(curves, ctx.outdir / "force_activation.png", dpi=ctx.cfg.dpi,
+    return plot_force_activation(curves, ctx.outdir / "force_activation.png", dpi=ctx.cfg.dpi,
                                    title=f"Isometric force vs {'load factor' if by_load else 'activation'} — "
                                          f"{summary['label']}", xlabel=by_load or "activation α [-]")
 
@@ -147,8 +155,8 @@ def _compare_curves(compare: dict, main: Path | None, ctx: Context, by_load: boo
             if main is not None and p.resolve() == main.resolve():
                 continue
             other = load_results(p)
-            sets = C.select_force_sets(other.reaction, ctx.cfg.force_sets, other.constrained_text())
-            f = C.end_force(C.axial_forces(other.reaction, sets), other.n_states)
+            sets = select_force_sets(other.reaction, ctx.cfg.force_sets, other.constrained_text())
+            f = end_force(axial_forces(other.reaction, sets), other.n_states)
             if sets:
                 curves[f"{lab} (mean of {', '.join(sets)})"] = (other.load_factor if by_load else other.alpha, f,
                                                                other.converged)
@@ -163,7 +171,8 @@ def _segmentation(ctx: Context) -> Path | None:
     if not ctx.cfg.segmentation_qc:
         return None
     from ..imaging.nifti import load_volume
-    from .segmentation_qc import find_segmentation, plot_overlays, read_segmentation, slice_areas
+    from ..io.segmentation import read_segmentation
+    from .segmentation_qc import find_segmentation, plot_overlays, slice_areas
 
     seg_path, mri_path, note = find_segmentation(ctx.summary.get("stages", []))
     if seg_path is None:
@@ -171,7 +180,7 @@ def _segmentation(ctx: Context) -> Path | None:
         return None
     try:
         seg = read_segmentation(seg_path)
-    except (KeyError, OSError) as exc:
+    except (KeyError, OSError, InputError) as exc:
         ctx.summary["segmentation_qc"] = {"note": f"segmentation file {seg_path} not readable ({exc})"}
         return None
     mri = None
@@ -180,10 +189,10 @@ def _segmentation(ctx: Context) -> Path | None:
             mri = load_volume(mri_path, kind="image").data
         except InputError as exc:
             note = f"MRI not shown: {exc}"
-    header, rows = slice_areas(seg["labels"], seg["muscle_id"], seg["names"], seg["affine"])
+    header, rows = slice_areas(seg["labels"], seg["muscle_id"], seg["muscle_names"], seg["affine"])
     ctx.summary["segmentation_qc"] = {"file": str(seg_path), "mri": str(mri_path) if mri_path else None, "note": note,
                                       "areas_header": header, "areas": rows}
-    C.write_csv(ctx.outdir / "segmentation_areas.csv", header, rows)
+    write_csv(ctx.outdir / "segmentation_areas.csv", header, rows)
     return plot_overlays(mri, seg, ctx.outdir / "segmentation_qc.png", dpi=ctx.cfg.dpi)
 
 
@@ -253,7 +262,7 @@ def _slices_s(ctx: Context) -> Path | None:
 
 @figure("newton", "solver", "Newton residual per iteration of every load step")
 def _newton(ctx: Context) -> Path | None:
-    return C.plot_newton(ctx.res.newton, ctx.outdir / "newton.png", dpi=ctx.cfg.dpi)
+    return plot_newton(ctx.res.newton, ctx.outdir / "newton.png", dpi=ctx.cfg.dpi)
 
 
 def field_step(res: Results, cfg: ReportConfig, warnings: list) -> int | None:

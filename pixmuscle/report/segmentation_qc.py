@@ -31,16 +31,6 @@ def find_segmentation(stages: list[dict]) -> tuple[Path | None, Path | None, str
     return seg, mri, ""
 
 
-def read_segmentation(path: Path) -> dict:
-    """labels, muscle_id (I, J, K), muscle names and the voxel → cm affine of a segmentation file."""
-    import h5py
-
-    with h5py.File(path, "r") as f:
-        names = [n.decode() if isinstance(n, bytes) else str(n) for n in f["muscle_names"][()]] if "muscle_names" in f else []
-        return {"labels": f["labels"][()], "muscle_id": f["muscle_id"][()] if "muscle_id" in f else None,
-                "names": names, "affine": np.asarray(f["affine"][()], float)}
-
-
 def slice_areas(labels: np.ndarray, muscle_id: np.ndarray | None, names: list[str], affine: np.ndarray) -> tuple[list, list]:
     """Area (cm²) of each tissue and each muscle in every slice (axis 2).
 
@@ -74,7 +64,7 @@ def plot_overlays(mri: np.ndarray | None, seg: dict, path: Path, *, dpi: int = 1
     import matplotlib.pyplot as plt
     from matplotlib.patches import Patch
 
-    labels, mid, names, a = seg["labels"], seg["muscle_id"], seg["names"], seg["affine"]
+    labels, mid, names, a = seg["labels"], seg["muscle_id"], seg["muscle_names"], seg["affine"]
     K = labels.shape[2]
     ks = np.unique(np.linspace(0, K - 1, min(K, max_slices)).round().astype(int))
     h = np.linalg.norm(a[:3, :3], axis=0)

@@ -14,8 +14,8 @@ import numpy as np
 
 from ..mechanics.results import Results
 from ..store import _plain
-from . import curves as C
 from .config import ReportConfig
+from .curves import axial_forces, end_force, end_normal, newton_per_step, select_force_sets
 from .displacement import ACTIVATION, run_protocol
 from .tables import tissue_table
 
@@ -140,12 +140,12 @@ def compute_summary(res: Results, cfg: ReportConfig | None = None, extra: dict |
         warnings.append(f"{bad.size} stored step(s) did not converge: {', '.join(map(str, bad[:20]))}"
                         + (" ..." if bad.size > 20 else "") + "; they are excluded from F_max and from the field outputs")
     constrained = res.constrained_text()
-    force_sets = C.select_force_sets(res.reaction, cfg.force_sets, constrained)
+    force_sets = select_force_sets(res.reaction, cfg.force_sets, constrained)
     if not force_sets:
         warnings.append("no constrained end set (z_min/z_max) has a reaction in the results file: no muscle force reported")
-    ends = [s for s in sorted(res.reaction) if C.end_normal(s) is not None]
-    axial = C.axial_forces(res.reaction, ends)
-    fend = C.end_force({s: axial[s] for s in force_sets}, s1)
+    ends = [s for s in sorted(res.reaction) if end_normal(s) is not None]
+    axial = axial_forces(res.reaction, ends)
+    fend = end_force({s: axial[s] for s in force_sets}, s1)
     for s in force_sets:
         nonfinite = conv & ~np.isfinite(axial[s])
         if nonfinite.any():
@@ -182,7 +182,7 @@ def compute_summary(res: Results, cfg: ReportConfig | None = None, extra: dict |
     tissue = tissue_table(m.ijk, m.tissue, m.muscle_id, m.shape, m.spacing, m.muscle_names, f_max=f_max if by_activation else None,
                           rule=cfg.imat_rule, attach_distance=cfg.attach_distance, aponeurosis=apo)
     vol = tissue["volumes_cm3"]
-    per_step = C.newton_per_step(res.newton, s1)
+    per_step = newton_per_step(res.newton, s1)
     cut = None if res.cutbacks is None else np.asarray(res.cutbacks).ravel()
     label = str(extra.get("subject") or extra.get("label") or (path.stem if path is not None else "results"))
     stages = [{k: r.get(k) for k in ("stage", "file", "config", "provenance", "warnings")} for r in stage_records(res)]

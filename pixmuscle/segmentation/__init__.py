@@ -23,7 +23,7 @@ from pixmuscle.segmentation.multiphase import (
     seed_features,
     seed_regions,
 )
-from pixmuscle.segmentation.pipeline import SegmentationResult, segment_volume
+from pixmuscle.segmentation.volume import SegmentationResult, segment_volume
 
 __all__ = [
     "ChanVeseResult", "chan_vese",

@@ -16,45 +16,14 @@ import numpy as np
 from ..errors import InputError
 from ..io.lineage import capture_warnings, stage_attrs
 from ..io.model import save_model
+from ..io.segmentation import read_segmentation
 from ..model.build import model_from_labels
 from ..model.config import BuildModelConfig
-from ..store import open_stage, read_strings
 
 _LOG = logging.getLogger(__name__)
 
-SEGMENTATION_SCHEMA = "pixmuscle.segmentation"
-SEGMENTATION_VERSION = 1
-
 #: largest difference (cm) between two affines that still counts as the same grid
 AFFINE_ATOL = 1e-4
-
-
-def read_segmentation(path: str | Path) -> dict[str, Any]:
-    """Read the arrays of a ``segmentation.h5`` (schema ``pixmuscle.segmentation`` v1).
-
-    Returns
-    -------
-    dict
-        ``labels`` (I, J, K) int, ``muscle_id`` (I, J, K) int or None, ``muscle_names`` list of
-        str, ``fiber`` (I, J, K, 3) float or None, ``affine`` (4, 4) float (voxel → cm), ``masks``
-        (name → (I, J, K) bool: node sets kept by the segment stage, e.g. ``aponeurosis``).
-    """
-    path = Path(path)
-    with open_stage(path, schema=SEGMENTATION_SCHEMA, version=SEGMENTATION_VERSION) as f:
-        missing = [k for k in ("labels", "affine") if k not in f]
-        if missing:
-            raise InputError(f"{path}: segmentation file lacks dataset(s) {', '.join('/' + k for k in missing)}")
-        out = {
-            "labels": f["labels"][()],
-            "affine": np.asarray(f["affine"][()], dtype=float),
-            "muscle_id": f["muscle_id"][()] if "muscle_id" in f else None,
-            "muscle_names": read_strings(f["muscle_names"]) if "muscle_names" in f else [],
-            "fiber": f["fiber"][()] if "fiber" in f else None,
-            "masks": {k: f["masks"][k][()] != 0 for k in f["masks"]} if "masks" in f else {},
-        }
-    if out["affine"].shape != (4, 4):
-        raise InputError(f"{path}: /affine: expected a (4, 4) voxel → cm matrix, got shape {out['affine'].shape}")
-    return out
 
 
 def _same_grid(name: str, path: Path, shape, affine, ref_path: Path, ref_shape, ref_affine) -> None:

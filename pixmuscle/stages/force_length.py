@@ -1,7 +1,7 @@
 """Stage ``force_length``: active, passive and total end force against muscle length.
 
 ``model.h5`` → ``force_length_<model>.h5``, schema ``pixmuscle.force_length`` v1
-(method: :mod:`pixmuscle.mechanics.protocols`)::
+(method: :mod:`pixmuscle.mechanics.experiments`)::
 
     /delta     (P,) cm   prescribed displacement of the swept end (shortening < 0, lengthening > 0, 0)
     /length    (P,) cm   muscle length L0 + δ
@@ -24,19 +24,17 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, SolverError
+from ..io.force_length import write_force_length
 from ..io.lineage import capture_warnings, stage_attrs
 from ..io.model import load_model
-from ..mechanics.protocols import ForceLengthConfig, force_length_cases, reference_length
+from ..mechanics.experiments import ForceLengthConfig, force_length_cases, reference_length
 from ..mechanics.solve import solve
-from ..store import open_stage, write_dataset, write_stage
 from .muscle_forces import end_force_of
 from .solve import model_activation
 
-SCHEMA = "pixmuscle.force_length"
-VERSION = 1
 _LOG = logging.getLogger(__name__)
 
-__all__ = ["SCHEMA", "VERSION", "load_force_length", "run_force_length"]
+__all__ = ["fibre_law_force", "run_force_length"]
 
 
 def run_force_length(model_path, solve_cfg, cfg: ForceLengthConfig, out_path, *, synthetic: bool = False) -> Path:
@@ -92,24 +90,14 @@ def _run(model_path, solve_cfg, cfg, out_path, warnings, synthetic) -> Path:
     pas = np.array([passive.get(d, np.nan) for d in deltas])
     law = fibre_law_force(model, solve_cfg, cases[0]["cfg"], L0, (L0 + deltas) / L0)
 
-    def write(f):
-        write_dataset(f, "delta", deltas, units="cm")
-        write_dataset(f, "length", L0 + deltas, units="cm")
-        write_dataset(f, "stretch", (L0 + deltas) / L0, units="1")
-        write_dataset(f, "total", tot, units="N")
-        write_dataset(f, "passive", pas, units="N")
-        write_dataset(f, "active", tot - pas, units="N")
-        write_dataset(f, "fibre_law", law, units="N")
-
     act = cfg.activation if isinstance(cfg.activation, dict) else float(cfg.activation)
     attrs = {"L0_cm": L0, "nodes": cfg.nodes, "component": cfg.component, "activation": json.dumps(act),
              "force_sets": json.dumps(sets or []), "runs": json.dumps(status)}
     image = solve_cfg.activation.get("image")
     inputs = [Path(model_path)] + ([image] if image is not None else [])
     attrs.update(stage_attrs("force_length", inputs, warnings, synthetic=synthetic))
-    write_stage(out_path, schema=SCHEMA, version=VERSION, write=write,
-                config={"solve": solve_cfg, "force_length": cfg}, inputs=inputs, attrs=attrs)
-    return Path(out_path)
+    return write_force_length(out_path, delta=deltas, L0=L0, total=tot, passive=pas, fibre_law=law, attrs=attrs,
+                              config={"solve": solve_cfg, "force_length": cfg}, inputs=inputs)
 
 
 def fibre_law_force(model, solve_cfg, active_cfg, L0: float, stretch) -> np.ndarray:
@@ -127,15 +115,8 @@ def fibre_law_force(model, solve_cfg, active_cfg, L0: float, stretch) -> np.ndar
     ramp = model_activation(model, active_cfg) or ActivationRamp.uniform(active_cfg.alpha_from, active_cfg.alpha_to,
                                                                           muscle)
     m = solve_cfg.materials.muscle
+    if not all(hasattr(m, k) for k in ("sigma_max", "lambda_opt")):
+        raise InputError(f"force_length: the Hill-type yardstick needs the muscle law's sigma_max and lambda_opt; "
+                         f"solve.materials.muscle is {type(m).__name__}")
     area = float(muscle.sum()) * model.cell_volume / L0
     return ramp.mean(1.0) * m.sigma_max * area * f_active(np.asarray(stretch, float) / m.lambda_opt)
-
-
-def load_force_length(path) -> dict:
-    """Read ``force_length_<model>.h5``: arrays and decoded attributes."""
-    with open_stage(path, schema=SCHEMA, version=VERSION) as f:
-        out = {k: f[k][()] for k in ("delta", "length", "stretch", "total", "passive", "active", "fibre_law")}
-        out.update(L0_cm=float(f.attrs["L0_cm"]), nodes=str(f.attrs["nodes"]), component=str(f.attrs["component"]),
-                   activation=json.loads(f.attrs["activation"]), force_sets=json.loads(f.attrs["force_sets"]),
-                   runs=json.loads(f.attrs["runs"]))
-    return out

@@ -1,4 +1,4 @@
-"""Stage ``muscle_forces``: the end force split by muscle (:mod:`pixmuscle.mechanics.protocols`).
+"""Stage ``muscle_forces``: the end force split by muscle (:mod:`pixmuscle.mechanics.experiments`).
 
 ``model.h5`` (+ the solve stage's ``results_<model>.h5``, reused as the all-muscle run) →
 ``muscle_forces_<model>.h5``, schema ``pixmuscle.muscle_forces`` v1::
@@ -26,21 +26,19 @@ import numpy as np
 from ..errors import InputError, SolverError
 from ..io.lineage import capture_warnings, stage_attrs
 from ..io.model import load_model
+from ..io.muscle_forces import write_muscle_forces
 from ..mechanics.activation import ActivationRamp
-from ..mechanics.protocols import MuscleForcesConfig, decompose, muscle_force_ramps
+from ..mechanics.experiments import MuscleForcesConfig, decompose, muscle_force_ramps
 from ..mechanics.solve import solve
 from ..model.tissues import MUSCLE
-from ..store import open_stage, write_dataset, write_stage
 from .solve import model_activation
 
-SCHEMA = "pixmuscle.muscle_forces"
-VERSION = 1
 METHOD = ("contribution of a muscle = end force with only that muscle ramped (the others held at their 'from' "
           "activation) minus the baseline with every muscle held at 'from'; interaction = all-muscle force − "
-          "baseline − Σ contributions (pixmuscle.mechanics.protocols)")
+          "baseline − Σ contributions (pixmuscle.mechanics.experiments)")
 _LOG = logging.getLogger(__name__)
 
-__all__ = ["SCHEMA", "VERSION", "end_force_of", "load_muscle_forces", "run_muscle_forces"]
+__all__ = ["end_force_of", "run_muscle_forces"]
 
 
 def end_force_of(results, n_steps: int, force_sets=None) -> tuple[np.ndarray, list[str]]:
@@ -121,40 +119,12 @@ def _run(model_path, solve_cfg, cfg, out_path, results_path, warnings, synthetic
     dec = decompose(total, base, forces)
     load_factor = np.arange(n) / solve_cfg.steps
 
-    def write(f):
-        st = f.create_group("steps")
-        write_dataset(st, "alpha", alpha, units="1")
-        write_dataset(st, "load_factor", load_factor, units="1")
-        fo = f.create_group("force")
-        write_dataset(fo, "total", total, units="N")
-        write_dataset(fo, "baseline", base, units="N")
-        al = fo.create_group("alone")
-        co = f.create_group("contribution")
-        for name in forces:
-            write_dataset(al, name, forces[name], units="N")
-            write_dataset(co, name, dec["contribution"][name], units="N")
-        write_dataset(f, "interaction", dec["interaction"], units="N")
-
     inputs = [Path(model_path)] + ([Path(results_path)] if results_path is not None and Path(results_path).is_file()
                                    else [])
-    attrs = {"muscles": json.dumps(list(forces)), "force_sets": json.dumps(sets), "runs": json.dumps(status),
-             "method": METHOD, **stage_attrs("muscle_forces", inputs, warnings, synthetic=synthetic)}
-    write_stage(out_path, schema=SCHEMA, version=VERSION, write=write,
-                config={"solve": solve_cfg, "muscle_forces": cfg}, inputs=inputs, attrs=attrs)
+    attrs = {"force_sets": json.dumps(sets), "runs": json.dumps(status), "method": METHOD,
+             **stage_attrs("muscle_forces", inputs, warnings, synthetic=synthetic)}
+    write_muscle_forces(out_path, alpha=alpha, load_factor=load_factor, total=total, baseline=base, alone=forces,
+                        contribution=dec["contribution"], interaction=dec["interaction"], attrs=attrs,
+                        config={"solve": solve_cfg, "muscle_forces": cfg}, inputs=inputs)
     _LOG.info("muscle_forces: %s", ", ".join(f"{k} {v[-1]:.4g} N" for k, v in dec["contribution"].items()))
     return Path(out_path)
-
-
-def load_muscle_forces(path) -> dict:
-    """Read ``muscle_forces_<model>.h5``: the datasets as arrays, attrs decoded."""
-    with open_stage(path, schema=SCHEMA, version=VERSION) as f:
-        muscles = json.loads(f.attrs["muscles"])
-        return {
-            "alpha": f["steps/alpha"][()], "load_factor": f["steps/load_factor"][()],
-            "total": f["force/total"][()], "baseline": f["force/baseline"][()],
-            "alone": {m: f[f"force/alone/{m}"][()] for m in muscles},
-            "contribution": {m: f[f"contribution/{m}"][()] for m in muscles},
-            "interaction": f["interaction"][()], "muscles": muscles,
-            "force_sets": json.loads(f.attrs["force_sets"]), "runs": json.loads(f.attrs["runs"]),
-            "method": str(f.attrs["method"]),
-        }

@@ -28,14 +28,14 @@ import numpy as np
 from .. import __version__
 from ..errors import InputError
 from ..io.results import load_results
-from ..report import curves as C
-from ..report import displacement as D
 from ..report.config import ReportConfig
+from ..report.curves import _cell, force_table, write_csv
+from ..report.displacement import displacement_csv, read_reference_curve, reference_entry
 from ..report.figures import Context, field_step, make_figures
 from ..report.summary import compute_summary
 from ..report.tables import table_csv_rows
 from ..store import _plain, sha256_file
-from .report_protocols import protocol_sections
+from .report_experiments import experiment_sections
 
 _LOG = logging.getLogger(__name__)
 
@@ -109,7 +109,7 @@ def _write_report(res, results_path: Path, outdir: Path, final: Path, cfg: Repor
     summary["results_sha256"] = sha256_file(results_path)
     summary["versions"] = _versions()
 
-    header, rows = C.force_table(res.alpha, res.load_factor, res.converged, res.iterations, res.reaction,
+    header, rows = force_table(res.alpha, res.load_factor, res.converged, res.iterations, res.reaction,
                                  summary["force_sets"])
     model_parts: list[str] = []
     by_activation = summary["protocol"]["kind"] == "activation"
@@ -117,15 +117,15 @@ def _write_report(res, results_path: Path, outdir: Path, final: Path, cfg: Repor
         others = _other_models(extra, results_path)
         if others:  # several models of one case (coarse and fine): every output for each, and their difference
             model_parts = _models(res, summary, tissue, others, outdir, final, cfg, header, rows)
-        out["force_activation_csv"] = str(C.write_csv(outdir / "force_activation.csv", header, rows))
+        out["force_activation_csv"] = str(write_csv(outdir / "force_activation.csv", header, rows))
     else:  # displacement-driven (report/displacement.py): force vs displacement, a reference beside it
         _reference(summary, cfg)
-        header, rows = D.displacement_csv(header, rows, summary)
-        out["force_displacement_csv"] = str(C.write_csv(outdir / "force_displacement.csv", header, rows))
-    # per-muscle forces, force-length, DWI (issue 18): fills the tissue table's per-muscle F_max
-    sections = protocol_sections(extra, outdir, summary, tissue, dpi=cfg.dpi, activation=res.info.get("activation"))
+        header, rows = displacement_csv(header, rows, summary)
+        out["force_displacement_csv"] = str(write_csv(outdir / "force_displacement.csv", header, rows))
+    # per-muscle forces, force-length, DWI: fills the tissue table's per-muscle F_max
+    sections = experiment_sections(extra, outdir, summary, tissue, dpi=cfg.dpi, activation=res.info.get("activation"))
     if by_activation:
-        out["tissue_table_csv"] = str(C.write_csv(outdir / "tissue_table.csv", tissue["header"], table_csv_rows(tissue)))
+        out["tissue_table_csv"] = str(write_csv(outdir / "tissue_table.csv", tissue["header"], table_csv_rows(tissue)))
 
     if cfg.vtu and summary["field_step"] is not None:
         out.update(_fields(res, cfg, tissue, outdir, warnings, displacement=summary["curve"].get("displacement_cm")))
@@ -173,8 +173,8 @@ def _reference(summary: dict, cfg: ReportConfig) -> None:
     if cfg.reference_curve is None:
         return
     d = np.array(summary["curve"]["displacement_cm"], float)
-    curve = D.read_reference_curve(cfg.reference_curve)
-    summary["reference"] = D.reference_entry(summary, d, cfg.reference_label, cfg.reference_curve, curve)
+    curve = read_reference_curve(cfg.reference_curve)
+    summary["reference"] = reference_entry(summary, d, cfg.reference_label, cfg.reference_curve, curve)
     if (d > curve[0].max() + 1e-9).any() or (d < curve[0].min() - 1e-9).any():
         summary["warnings"].append(f"report.reference_curve covers {curve[0].min():.3g}–{curve[0].max():.3g} cm, the run "
                                    f"{d.min():.3g}–{d.max():.3g} cm: no comparison outside")
@@ -215,11 +215,11 @@ def _models(res, summary: dict, tissue: dict, others: dict, outdir: Path, final:
         s2, t2 = compute_summary(other, cfg, {**summary.get("extra", {}), "label": label})
         warnings += [f"model {label}: {w}" for w in s2["warnings"] if not w.startswith(("segment: ", "build-model: "))]
         s2["field_step"] = field_step(other, cfg, warnings)
-        h2, r2 = C.force_table(other.alpha, other.load_factor, other.converged, other.iterations, other.reaction,
+        h2, r2 = force_table(other.alpha, other.load_factor, other.converged, other.iterations, other.reaction,
                                s2["force_sets"])
         o2 = s2["outputs"]
-        o2["force_activation_csv"] = str(C.write_csv(sub / "force_activation.csv", h2, r2))
-        o2["tissue_table_csv"] = str(C.write_csv(sub / "tissue_table.csv", t2["header"], table_csv_rows(t2)))
+        o2["force_activation_csv"] = str(write_csv(sub / "force_activation.csv", h2, r2))
+        o2["tissue_table_csv"] = str(write_csv(sub / "tissue_table.csv", t2["header"], table_csv_rows(t2)))
         if cfg.vtu and s2["field_step"] is not None:
             o2.update(_fields(other, cfg, t2, sub, warnings))
         figs = make_figures(Context(res=other, summary=s2, cfg=cfg, outdir=sub, warnings=warnings, extra={}),
@@ -239,7 +239,7 @@ def _models(res, summary: dict, tissue: dict, others: dict, outdir: Path, final:
         f = force_at(*curves[label], alpha)
         header.append(f"end_force {label} [N]")
         for row, v in zip(rows, f, strict=True):
-            row.append(C._cell(v))
+            row.append(_cell(v))
     nodes = {k: v["n_nodes"] for k, v in per_model.items()}
     conv = convergence_table(curves, nodes)
     summary["convergence"] = conv
@@ -252,7 +252,7 @@ def _models(res, summary: dict, tissue: dict, others: dict, outdir: Path, final:
                         f"from the {est['compared_with']} model's (more than {100 * est['threshold']:g} %): the force "
                         "still depends on the resolution; a finer model would change it further")
     summary["models"] = per_model
-    summary["outputs"]["convergence_csv"] = str(C.write_csv(outdir / "convergence.csv", conv["header"], conv["rows"]))
+    summary["outputs"]["convergence_csv"] = str(write_csv(outdir / "convergence.csv", conv["header"], conv["rows"]))
     def reroot(v):
         if isinstance(v, list):
             return [reroot(x) for x in v]

@@ -3,7 +3,7 @@
 Reads the inputs named in the ``segment`` config section (:class:`~pixmuscle.segmentation.
 config.SegmentConfig`), fits the tensor of a scanner DWI series when ``segment.dwi`` is given
 (:mod:`pixmuscle.stages.dwi_qc`: FA/MD/V1 maps in the QC folder), maps the DTI onto the MRI grid
-through the affines (tensors are interpolated, never eigenvectors), runs :func:`pixmuscle.segmentation.pipeline.segment_volume`
+through the affines (tensors are interpolated, never eigenvectors), runs :func:`pixmuscle.segmentation.volume.segment_volume`
 and writes
 
 * ``<out>`` — HDF5, schema ``pixmuscle.segmentation`` v1 (docs/architecture.md);
@@ -29,15 +29,13 @@ from pixmuscle.imaging.dti import (
 from pixmuscle.imaging.nifti import file_affine_cm, load_volume, save_volume
 from pixmuscle.imaging.resample import resample_labels
 from pixmuscle.io.lineage import capture_warnings, stage_attrs
+from pixmuscle.io.segmentation import write_segmentation
 from pixmuscle.outdir import WRITE_ERRNOS, describe_os_error, prepare_output_dir
 from pixmuscle.segmentation.config import SegmentConfig
-from pixmuscle.segmentation.pipeline import SegmentationResult, segment_volume
-from pixmuscle.store import write_dataset, write_stage
+from pixmuscle.segmentation.volume import SegmentationResult, segment_volume
 
-__all__ = ["SCHEMA", "VERSION", "run_segment", "write_segmentation", "write_qc_pngs"]
+__all__ = ["run_segment", "write_qc_pngs"]
 
-SCHEMA = "pixmuscle.segmentation"
-VERSION = 1
 _LOG = logging.getLogger(__name__)
 
 
@@ -157,45 +155,6 @@ def _segment(cfg, qc_dir, progress):
     if "aponeurosis" in masks:
         masks["aponeurosis"] &= res.labels == 2  # only where the labels have connective tissue
     return mri, res, inputs, masks
-
-
-def write_segmentation(path, res: SegmentationResult, affine, *, config=None, inputs=(), attrs=None, masks=None):
-    """Write a :class:`SegmentationResult` as ``pixmuscle.segmentation`` v1 (atomic).
-
-    Layout: ``/labels`` (I,J,K) int16, ``/muscle_id`` (I,J,K) int16, ``/muscle_names`` (M,) str,
-    ``/fiber`` (I,J,K,3) float32, ``/affine`` (4,4) cm, ``/qc/*`` diagnostics, and
-    ``/masks/<name>`` (I,J,K) uint8 for each of ``masks`` (name → bool array; the build-model stage
-    turns each into a node set of that name).
-    """
-    affine = np.asarray(affine, dtype=float)
-
-    def write(f):
-        write_dataset(f, "labels", res.labels.astype(np.int16),
-                      codes="0 background, 1 muscle, 2 connective_tissue, 3 fat, 4 bone")
-        write_dataset(f, "muscle_id", res.muscle_id.astype(np.int16))
-        write_dataset(f, "muscle_names", np.array(res.muscle_names, dtype=str))
-        write_dataset(f, "fiber", res.fiber.astype(np.float32), units="1",
-                      sign="canonical: v_z >= 0 (ties: v_y > 0, then v_x > 0)")
-        write_dataset(f, "affine", affine, units="cm")
-        if masks:
-            g = f.create_group("masks")
-            for name, m in masks.items():
-                write_dataset(g, name, np.asarray(m, bool).astype(np.uint8))
-        qc = f.create_group("qc")
-        for key, val in res.qc.items():
-            if key == "seed_voxels_ijk":
-                g = qc.create_group(key)
-                for name, pts in zip(res.muscle_names, val, strict=True):
-                    write_dataset(g, name, np.asarray(pts, dtype=np.int64))
-            elif key == "shared_regions":
-                qc.attrs[key] = repr([[res.muscle_names[m - 1] for m in grp] for grp in val])
-            elif np.ndim(val) == 0:
-                qc.attrs[key] = val
-            else:
-                write_dataset(qc, key, np.asarray(val))
-
-    return write_stage(path, schema=SCHEMA, version=VERSION, write=write, config=config,
-                       inputs=inputs, units={"length": "cm"}, attrs=attrs)
 
 
 def write_qc_pngs(folder, mri, res: SegmentationResult):

@@ -134,7 +134,7 @@ def generate_samples(outdir="data/synthetic", names=None) -> dict:
         factory, kwargs = SAMPLES[name]
         out[name] = write_phantom(factory(**kwargs), outdir, name)
     if names == list(SAMPLES):
-        out["tendon"] = {"labels": write_tendon_labels(outdir), "fe_reference": write_tendon_reference(outdir)}
+        out["tendon"] = {"labels": write_tendon_labels(outdir)}
         out["leg_demo_dwi"] = write_dwi_sample(outdir)
         out["leg_demo_activation"] = {"image": write_activation_sample(outdir)}
         out["muscle_block"] = {"labels": write_muscle_block_labels(outdir)}
@@ -199,27 +199,6 @@ def write_tendon_labels(outdir="data/synthetic", h=(0.2, 0.2, 0.125)) -> Path:
     mask, affine = tendon_voxels(h=h)
     path = Path(outdir) / "tendon_labels.nii.gz"
     save_volume(path, mask.astype(np.int16) * 2, affine, kind="labels")
-    return path
-
-
-def write_tendon_reference(outdir="data/synthetic", h=(0.2, 0.2, 0.125), stretch: float = 2.0, steps: int = 10) -> Path:
-    """Finite-element reference of the Example 1 tendon: ``tendon_fe_reference.csv`` (step, displacement_cm, force_N,
-    force_top_N).
-
-    The reaction of :func:`pixmuscle.verify.tendon_fem.tendon_fem_reaction` (scikit-fem, Q2–P1disc elements, one
-    per voxel, bottom clamped, top clamped laterally and displaced by ``stretch`` cm in ``steps`` equal steps) on
-    the voxels of :func:`write_tendon_labels` — the comparison of ``pixmuscle verify tendon``, kept as a file so
-    that the report of ``configs/tendon.yaml`` can draw it (``report.reference_curve``).
-    """
-    from pixmuscle.verify.tendon_fem import reference_table, tendon_fem_reaction
-    from pixmuscle.verify.tendon_geometry import tendon_voxels
-
-    mask, affine = tendon_voxels(h=h)
-    fem = tendon_fem_reaction(mask, affine, stretch=stretch, steps=steps, element="mixed", bc="clamped")
-    path = Path(outdir) / "tendon_fe_reference.csv"
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    reference_table(fem, tmp)
-    os.replace(tmp, path)
     return path
 
 

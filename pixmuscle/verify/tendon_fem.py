@@ -66,14 +66,17 @@ Units: cm, N, N/cm².
 """
 
 import csv
+import os
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from pixmuscle.errors import InputError, SolverError
+from pixmuscle.mechanics.materials import CONNECTIVE_TISSUE as _TABLE1_CT
 from pixmuscle.verify.tendon_geometry import grid_spacing
 
 __all__ = [
@@ -85,10 +88,12 @@ __all__ = [
     "convergence_study",
     "reference_table",
     "plot_comparison",
+    "write_tendon_reference",
 ]
 
-#: Table 1, connective tissue: (C10, C20, C30, K) in N/cm².
-CONNECTIVE_TISSUE = (30.0, 80.0, 800.0, 50000.0)
+#: Table 1, connective tissue: (C10, C20, C30, K) in N/cm² (the constants of the package's law; the
+#: energy, stress and tangent below are this module's own).
+CONNECTIVE_TISSUE = (_TABLE1_CT.C10, _TABLE1_CT.C20, _TABLE1_CT.C30, _TABLE1_CT.K)
 
 _EYE = np.eye(3)
 _I4 = np.einsum("ik,JL->iJkL", _EYE, _EYE)  # δ_ik δ_JL, index order [i, J, k, L]
@@ -814,3 +819,23 @@ def plot_comparison(fem, meshfree, path, labels=("FE (scikit-fem)", "meshfree (R
     fig.savefig(path, dpi=150)
     plt.close(fig)
     return rel
+
+
+def write_tendon_reference(outdir="data/synthetic", h=(0.2, 0.2, 0.125), stretch: float = 2.0, steps: int = 10) -> Path:
+    """Finite-element reference of the Example 1 tendon: ``tendon_fe_reference.csv`` (step, displacement_cm, force_N,
+    force_top_N).
+
+    The reaction of :func:`tendon_fem_reaction` (scikit-fem, Q2–P1disc elements, one
+    per voxel, bottom clamped, top clamped laterally and displaced by ``stretch`` cm in ``steps`` equal steps) on
+    the voxels of :func:`pixmuscle.synth.write.write_tendon_labels` — the comparison of ``pixmuscle verify tendon``, kept as a file so
+    that the report of ``configs/tendon.yaml`` can draw it (``report.reference_curve``).
+    """
+    from .tendon_geometry import tendon_voxels
+
+    mask, affine = tendon_voxels(h=h)
+    fem = tendon_fem_reaction(mask, affine, stretch=stretch, steps=steps, element="mixed", bc="clamped")
+    path = Path(outdir) / "tendon_fe_reference.csv"
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    reference_table(fem, tmp)
+    os.replace(tmp, path)
+    return path

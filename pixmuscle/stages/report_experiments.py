@@ -1,4 +1,4 @@
-"""Report additions of issue 18, called by :func:`pixmuscle.stages.report.make_report`.
+"""Report sections of the per-muscle forces, force–length curves and DWI fit, called by :func:`pixmuscle.stages.report.make_report`.
 
 Reads the files the pipeline names in the report's ``extra`` mapping —
 ``muscle_forces`` (``muscle_forces_<model>.h5``), ``force_length`` (``force_length_<model>.h5``),
@@ -17,7 +17,7 @@ from ..errors import InputError
 
 _LOG = logging.getLogger(__name__)
 
-__all__ = ["protocol_sections"]
+__all__ = ["experiment_sections"]
 
 
 def _fmax_step(summary: dict) -> int | None:
@@ -30,8 +30,8 @@ def _fmax_step(summary: dict) -> int | None:
     return int(np.flatnonzero(ok)[np.argmax(f[ok])]) if ok.any() else None
 
 
-def protocol_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: int = 120,
-                      activation: dict | None = None) -> list[str]:
+def experiment_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: int = 120,
+                        activation: dict | None = None) -> list[str]:
     """HTML sections: activation per muscle, and the per-muscle forces, force–length curves and DWI
     fit named in ``extra``.
 
@@ -42,8 +42,8 @@ def protocol_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: 
     ``summary["outputs"]`` entries and warnings to ``summary["warnings"]``.
     """
     from ..report.dwi import dwi_section
+    from ..report.experiments import force_length_section, muscle_forces_section
     from ..report.html import table
-    from ..report.protocols import force_length_section, muscle_forces_section
 
     outdir = Path(outdir)
     warnings = summary["warnings"]
@@ -56,7 +56,7 @@ def protocol_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: 
                   "each muscle's nodes). Each muscle's α ramps linearly with the load factor s, α = start + s (end − "
                   "start), so the force curves are drawn against s, with every muscle's α named on the axis.</p>"]
     if extra.get("muscle_forces"):
-        from .muscle_forces import load_muscle_forces
+        from ..io.muscle_forces import load_muscle_forces
 
         try:
             mf = load_muscle_forces(extra["muscle_forces"])
@@ -84,7 +84,7 @@ def protocol_sections(extra: dict, outdir, summary: dict, tissue: dict, *, dpi: 
                     tissue["footnote"] = summary["tissue_footnote"] = footnote(
                         tissue["rule"], tissue["attach_distance"], tissue["aponeurosis_mask"], per_muscle_force=True)
     if extra.get("force_length"):
-        from .force_length import load_force_length
+        from ..io.force_length import load_force_length
 
         try:
             fl = load_force_length(extra["force_length"])

@@ -1,4 +1,4 @@
-"""Loading protocols made of several solves: per-muscle force contributions and force–length sweeps.
+"""Experiments made of several solves: per-muscle force contributions and force–length sweeps.
 
 Pure helpers: they build the activation ramps and solve configurations of each run and combine
 the end forces of the runs; the stage layer (:mod:`pixmuscle.stages.muscle_forces`,

@@ -1,7 +1,7 @@
-"""Report sections of the multi-solve protocols: per-muscle force contributions and force–length curves.
+"""Report sections of the multi-solve experiments: per-muscle force contributions and force–length curves.
 
-Inputs are the dictionaries of :func:`pixmuscle.stages.muscle_forces.load_muscle_forces` and
-:func:`pixmuscle.stages.force_length.load_force_length`; outputs are PNG/CSV files and HTML
+Inputs are the dictionaries of :func:`pixmuscle.io.muscle_forces.load_muscle_forces` and
+:func:`pixmuscle.io.force_length.load_force_length`; outputs are PNG/CSV files and HTML
 fragments (see :mod:`pixmuscle.report.html`).
 """
 
@@ -158,7 +158,7 @@ def force_length_section(fl: Mapping, outdir, *, dpi: int = 120, warnings: list 
              f'<p class="foot">End {esc(fl["nodes"])} displaced along {esc(fl["component"])} (shortening &lt; 0, '
              f"lengthening &gt; 0) at activation {esc(fmt(act) if not isinstance(act, dict) else act)} and at α = 0; "
              "active = total − passive at the same length; fibre law = mean α · σ_max · (muscle volume / L0) · "
-             "f_active(L/L0), eqs. 24–26, exact for a homogeneous muscle block. Method: pixmuscle.mechanics.protocols. "
+             "f_active(L/L0), eqs. 24–26, exact for a homogeneous muscle block. Method: pixmuscle.mechanics.experiments. "
              "Data: <code>force_length.csv</code>.</p>",
              img_tag(png, "force-length curves"), table(header, rows)]
     return parts, {"outputs": {"force_length_csv": str(csv), "force_length_png": str(png)}}

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 
 from ..study import format_value, short_names
-from . import html as H
 from .curves import _pyplot, write_csv
+from .html import esc, html_units, img_tag, page, table
 
 #: a relative change of the subject ratio below this is reported as "does not depend"
 RATIO_TOLERANCE = 0.02
@@ -148,13 +148,13 @@ def _plot_ratio(ratios, keys, ref: str, path: Path, dpi: int) -> Path:
 
 
 def _answer(dep: Mapping[str, Any], keys: Sequence[str], ref: str) -> list[str]:
-    parts = [f"<h2>Does the ratio of force per unit volume to {H.esc(ref)}'s depend on the varied parameters?</h2>"]
+    parts = [f"<h2>Does the ratio of force per unit volume to {esc(ref)}'s depend on the varied parameters?</h2>"]
     for s, d in dep.items():
         big = d["spread"] >= RATIO_TOLERANCE
         verdict = (f"<b>Yes, by {100 * d['spread']:.1f} %</b> of its mean over these {d['n']} combinations" if big else
                    f"<b>Hardly</b>: it changes by only {100 * d['spread']:.2f} % of its mean over these {d['n']} combinations")
-        per = "; ".join(f"{H.esc(k)} alone: up to {100 * v:.2f} %" for k, v in d["per_key"].items())
-        parts.append(f"<p>{H.esc(s)} / {H.esc(ref)}: {verdict} (from {d['min']:.4g} to {d['max']:.4g}, mean "
+        per = "; ".join(f"{esc(k)} alone: up to {100 * v:.2f} %" for k, v in d["per_key"].items())
+        parts.append(f"<p>{esc(s)} / {esc(ref)}: {verdict} (from {d['min']:.4g} to {d['max']:.4g}, mean "
                      f"{d['mean']:.4g}). Changing one key with the others fixed: {per}.</p>")
     parts.append(f'<p class="foot">Force per unit volume = F_max / total volume, the paper\'s total volume: muscle + '
                  "IMAT + IMCT + aponeurosis (without subcutaneous fat and skin). "
@@ -208,9 +208,9 @@ def study_summary(rows: Sequence[Mapping[str, Any]], keys: Sequence[str], outdir
                 for row in table_rows]
     write_csv(outdir / "study.csv", header, csv_rows)
 
-    parts = [f"<h1>{H.esc(title)}</h1>",
+    parts = [f"<h1>{esc(title)}</h1>",
              f"<p>{len(rows)} cases: {len(subjects)} subject(s) × {len(dict.fromkeys(r['case'] for r in rows))} "
-             f"combination(s) of {', '.join(f'<code>{H.esc(k)}</code>' for k in keys)}.</p>"]
+             f"combination(s) of {', '.join(f'<code>{esc(k)}</code>' for k in keys)}.</p>"]
     if any((r.get("summary") or {}).get("synthetic") for r in rows):
         parts.append('<div class="note"><b>Synthetic inputs.</b> At least one case was built from synthetic '
                      "phantom images, not subject MRI/DTI.</div>")
@@ -221,33 +221,33 @@ def study_summary(rows: Sequence[Mapping[str, Any]], keys: Sequence[str], outdir
             parts += _answer(dep, keys, subjects[0])
             png = _plot_ratio([r for r in ratios if r["ratio"] is not None], keys, subjects[0],
                               outdir / "study_ratio.png", dpi)
-            parts.append(H.img_tag(png, "force per volume ratio vs each varied key"))
+            parts.append(img_tag(png, "force per volume ratio vs each varied key"))
             rt_head = ["case", *short_names(keys), "subject", f"force per volume ÷ {subjects[0]}'s"]
             rt_rows = [[r["case"], *[r["params"][k] for k in keys], r["subject"], r["ratio"]] for r in ratios]
-            parts.append(H.table(rt_head, rt_rows))
+            parts.append(table(rt_head, rt_rows))
     parts.append("<h2>Cases</h2>")
-    parts.append(H.table([H.html_units(h) for h in header], table_rows))
+    parts.append(table([html_units(h) for h in header], table_rows))
     parts.append('<p class="foot">F_max = largest end force over converged steps. Data: <code>study.csv</code>.</p>')
     if ok:
         parts.append("<h2>F_max and force per unit volume against each varied key</h2>")
         for k, tail in zip(keys, short_names(keys), strict=True):
             png = _plot_against(ok, k, keys, outdir / f"study_{format_value(tail)}.png", dpi)
-            parts.append(H.img_tag(png, f"F_max and force per volume vs {k}"))
+            parts.append(img_tag(png, f"F_max and force per volume vs {k}"))
     fails = [r for r in rows if r.get("error")]
     warn = [(r["subject"], r["case"], w) for r in ok for w in r["summary"].get("warnings", [])]
     if fails or warn:
         parts.append("<h2>Failures and warnings</h2><ul>")
-        parts += [f'<li class="fail">{H.esc(r["subject"])} [{H.esc(r["case"])}]: {H.esc(r["error"])}</li>' for r in fails]
-        parts += [f"<li>{H.esc(s)} [{H.esc(c)}]: {H.esc(w)}</li>" for s, c, w in warn]
+        parts += [f'<li class="fail">{esc(r["subject"])} [{esc(r["case"])}]: {esc(r["error"])}</li>' for r in fails]
+        parts += [f"<li>{esc(s)} [{esc(c)}]: {esc(w)}</li>" for s, c, w in warn]
         parts.append("</ul>")
     links = [(r, (r["summary"].get("outputs") or {}).get("index_html")) for r in ok]
     if any(p for _, p in links) or cohort_pages:
         parts.append("<h2>Case reports</h2><ul>")
-        parts += [f'<li><a href="{H.esc(_rel(p, outdir))}">{H.esc(r["subject"])} [{H.esc(r["case"])}]</a></li>'
+        parts += [f'<li><a href="{esc(_rel(p, outdir))}">{esc(r["subject"])} [{esc(r["case"])}]</a></li>'
                   for r, p in links if p]
-        parts += [f'<li><a href="{H.esc(_rel(p, outdir))}">cohort comparison [{H.esc(c)}]</a></li>'
+        parts += [f'<li><a href="{esc(_rel(p, outdir))}">cohort comparison [{esc(c)}]</a></li>'
                   for c, p in (cohort_pages or {}).items()]
         parts.append("</ul>")
     out = outdir / "study.html"
-    out.write_text(H.page(title, parts), encoding="utf-8")
+    out.write_text(page(title, parts), encoding="utf-8")
     return out

@@ -1,4 +1,4 @@
-"""Protocols of several solves (issue 18): per-muscle force contributions and force–length sweeps.
+"""Experiments of several solves: per-muscle force contributions and force–length sweeps.
 
 Truths (:mod:`pixmuscle.mechanics.homogeneous`, the material law alone, no discretisation):
 
@@ -15,16 +15,18 @@ import pytest
 
 from pixmuscle.config import parse_section
 from pixmuscle.errors import InputError
+from pixmuscle.io.force_length import load_force_length
 from pixmuscle.io.model import save_model
+from pixmuscle.io.muscle_forces import load_muscle_forces
 from pixmuscle.mechanics import homogeneous
 from pixmuscle.mechanics.config import SolveConfig
+from pixmuscle.mechanics.experiments import ForceLengthConfig, MuscleForcesConfig, decompose, force_length_cases
 from pixmuscle.mechanics.materials import f_active
-from pixmuscle.mechanics.protocols import ForceLengthConfig, MuscleForcesConfig, decompose, force_length_cases
 from pixmuscle.mechanics.solve import make_materials
 from pixmuscle.model.tissues import MUSCLE
 from pixmuscle.report.config import ReportConfig
-from pixmuscle.stages.force_length import load_force_length, run_force_length
-from pixmuscle.stages.muscle_forces import load_muscle_forces, run_muscle_forces
+from pixmuscle.stages.force_length import run_force_length
+from pixmuscle.stages.muscle_forces import run_muscle_forces
 from pixmuscle.stages.report import make_report
 from pixmuscle.stages.solve import run_solve
 from pixmuscle.verify.mechanics import mask_model, roller_bcs
@@ -102,7 +104,7 @@ def test_force_length_matches_the_homogeneous_bar_and_the_fibre_law(tmp_path):
         law = 0.8 * mat.sigma_max * area * float(f_active(lam / mat.lambda_opt))
         assert act == pytest.approx(law, rel=1e-2), lam  # measured: within 0.4 %
     np.testing.assert_allclose(c["fibre_law"], 0.8 * mat.sigma_max * area * f_active(c["stretch"]), rtol=1e-12)
-    from pixmuscle.report.protocols import force_length_section
+    from pixmuscle.report.experiments import force_length_section
 
     parts, info = force_length_section(c, tmp_path)
     assert (tmp_path / "force_length.png").is_file() and "Force–length" in parts[0]
