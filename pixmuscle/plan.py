@@ -136,9 +136,9 @@ def execute_stage(stage: Stage, force: bool = False) -> str:
     (stage.output.parent.parent if stage.kind == "report" else stage.output.parent).mkdir(parents=True, exist_ok=True)
     try:
         getattr(importlib.import_module(module), func)(**stage.kwargs)
-    except SolverError:
+    except SolverError as exc:
         if stage.on_failure is not None:
-            _after_failure(stage.on_failure)
+            exc.report = _after_failure(stage.on_failure)  # the CLI prints it
         raise
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: say which stage was running
         if not isinstance(exc, Interrupted):
@@ -149,8 +149,9 @@ def execute_stage(stage: Stage, force: bool = False) -> str:
     return "ran"
 
 
-def _after_failure(report: Stage) -> None:
-    """Report of a failed solve's partial results; if even that fails, no report (never a stale one)."""
+def _after_failure(report: Stage) -> str | None:
+    """Report of a failed solve's partial results, returning its path; if even that fails, no report
+    (never a stale one) and None."""
     import logging
     import shutil
 
@@ -162,9 +163,11 @@ def _after_failure(report: Stage) -> None:
         module, func = report.action.split(":")
         index = getattr(importlib.import_module(module), func)(**report.kwargs)
         log.error("the solve failed; the report shows its converged steps: %s", index)
+        return str(index)
     except (PixmuscleError, OSError) as exc:
         shutil.rmtree(folder, ignore_errors=True)
         log.error("the solve failed and its report could not be written (%s); the older report was removed", exc)
+        return None
 
 
 #: the ``--from`` stage that redoes the output of each stage kind
