@@ -179,6 +179,13 @@ def _synthetic(config: Path) -> bool:
     return bool(load_config(config).synthetic)
 
 
+def _config_folder(config: Path):
+    """Stage files written inside record their input paths relative to the config file's folder too."""
+    from .store import config_folder
+
+    return config_folder(config.parent)
+
+
 def _section(config: Path, name: str):
     from .pipeline import load_config
 
@@ -196,7 +203,8 @@ def segment(
     cfg = _section(config, "segment")
     if cfg is None:
         raise PixmuscleError(f"{config}: no `segment` section")
-    mod.run_segment(cfg, output, synthetic=_synthetic(config))
+    with _config_folder(config):
+        mod.run_segment(cfg, output, synthetic=_synthetic(config))
     _out(output)
 
 
@@ -224,7 +232,8 @@ def build_model(
             raise PixmuscleError(f"{segmentation}: segmentation file not found (run `pixmuscle segment --config "
                                  f"{config} -o {segmentation}` first)")
         bm = _with_segmentation(bm, segmentation.resolve(), cfg.base_dir)
-    mod.run_build_model(bm, output, synthetic=cfg.synthetic)
+    with _config_folder(config):
+        mod.run_build_model(bm, output, synthetic=cfg.synthetic)
     _out(output)
 
 
@@ -255,7 +264,7 @@ def solve(
     from . import parallel
 
     mod = _load("pixmuscle.stages.solve")
-    with parallel.abort_on_failure():
+    with parallel.abort_on_failure(), _config_folder(config):
         parallel.quiet_other_ranks()
         mod.run_solve(model, _section(config, "solve"), output, synthetic=_synthetic(config))
     if parallel.rank() == 0:

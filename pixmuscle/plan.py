@@ -67,6 +67,8 @@ class Stage:
     on_failure : Stage, optional
         Run when this stage fails with a :class:`~pixmuscle.errors.SolverError` (a solve's report
         stage: the report of the converged steps must replace the report of an older run).
+    config_dir : Path, optional
+        Folder of the config file: the output's provenance gives input paths relative to it too.
     """
 
     kind: str
@@ -77,6 +79,7 @@ class Stage:
     config: Any = None
     inputs: tuple = ()
     on_failure: Any = None
+    config_dir: Path | None = None
 
     @property
     def schema(self) -> tuple[str, int] | None:
@@ -131,11 +134,14 @@ def execute_stage(stage: Stage, force: bool = False) -> str:
     """
     if not force and is_up_to_date(stage):
         return "skipped"
+    from .store import config_folder
+
     module, func = stage.action.split(":")
     # the report folder itself is put in place as a unit by the stage (never created empty here)
     (stage.output.parent.parent if stage.kind == "report" else stage.output.parent).mkdir(parents=True, exist_ok=True)
     try:
-        getattr(importlib.import_module(module), func)(**stage.kwargs)
+        with config_folder(stage.config_dir):
+            getattr(importlib.import_module(module), func)(**stage.kwargs)
     except SolverError as exc:
         if stage.on_failure is not None:
             exc.report = _after_failure(stage.on_failure)  # the CLI prints it
@@ -466,7 +472,7 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
         # a failed solve still gets its report (converged steps, reason), never an older run's
         stages = [dataclasses.replace(st, on_failure=report) if st.kind == "solve" else st for st in stages]
         stages.append(report)
-    return stages
+    return [dataclasses.replace(st, config_dir=getattr(cfg, "base_dir", None)) for st in stages]
 
 
 def _protocol_stages(cfg: Any, which: str, mpath: Path, rpath: Path, stages: list | None) -> dict[str, Path]:
