@@ -41,7 +41,7 @@
       if (!a) return;
       for (var i = 0; i < a.length; i++) {
         var v = a[i];
-        if (v === null) continue;
+        if (v === null || isNaN(v)) continue;
         if (v < lo) lo = v;
         if (v > hi) hi = v;
       }
@@ -81,8 +81,8 @@
   }
 
   function continuous(s, values, key, title, scale) {
-    var idx = allIdx(function (i) { return values[i] !== null; });
-    var rest = allIdx(function (i) { return values[i] === null; });
+    var idx = allIdx(function (i) { return !isNaN(values[i]); });
+    var rest = allIdx(function (i) { return isNaN(values[i]); });
     var c = idx.map(function (i) { return values[i]; });
     var r = key === "fibre" ? [0, 90] : RANGES[key];
     var traces = [cloud(s, idx, title, {size: size, color: c, colorscale: scale, cmin: r[0], cmax: r[1],
@@ -90,7 +90,8 @@
                         c.map(function (v) { return v.toPrecision(4); }))];
     traces[0].showlegend = false;
     if (rest.length) {
-      var t = cloud(s, rest, "no fibre (not muscle)", {size: size, color: "#cccccc", opacity: 0.35});
+      var t = cloud(s, rest, key === "fibre" ? "no fibre (not muscle)" : "no value",
+                    {size: size, color: "#cccccc", opacity: 0.35});
       traces.push(t);
     }
     return traces;

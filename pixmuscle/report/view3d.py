@@ -83,10 +83,10 @@ def fibre_angle_deg(fiber: np.ndarray) -> np.ndarray:
 
 
 def _rounded(a: np.ndarray, step: float) -> list:
-    """Values rounded to a multiple of ``step`` (for a small JSON); NaN → None."""
-    r = np.round(np.asarray(a, float) / step) * step
+    """Values rounded to the decimal place of ``step`` (a small file), flattened; NaN stays NaN
+    (written as JavaScript's ``NaN``)."""
     digits = max(0, -int(math.floor(math.log10(step))))
-    return [None if not np.isfinite(v) else round(float(v), digits) for v in r.ravel()]
+    return np.round(np.asarray(a, float), digits).ravel().tolist()
 
 
 def view_data(res: Results, steps: np.ndarray, *, imat: np.ndarray | None = None, max_points: int = 20000) -> dict:
@@ -106,9 +106,10 @@ def view_data(res: Results, steps: np.ndarray, *, imat: np.ndarray | None = None
     -------
     dict
         ``X`` (flat 3M reference coordinates, cm), ``u`` (S lists of 3M displacements, cm), ``umag``
-        and ``s1`` (S lists of M: |u| cm, largest principal Cauchy stress N/cm², or None), ``tissue``
-        (M class indices), ``tissue_classes`` (names, colours), ``muscle`` (M ids, 0 = none),
-        ``muscle_names``, ``fibre_angle`` (M degrees or None), ``steps``, ``alpha``, ``n_nodes``, ``n_shown``.
+        and ``s1`` (S lists of M: |u| cm, largest principal Cauchy stress N/cm²; ``s1`` entries None
+        when the results hold no stress), ``tissue`` (M class indices), ``tissue_classes`` (names,
+        colours), ``muscle`` (M ids, 0 = none), ``muscle_names``, ``fibre_angle`` (M degrees, NaN off
+        muscle), ``steps``, ``alpha``, ``n_nodes``, ``n_shown``.
     """
     m = res.model
     keep = decimate(m.ijk, max_points)
@@ -171,6 +172,7 @@ def write_view(res: Results, outdir: str | Path, steps: np.ndarray, *, imat: np.
     paths = [outdir / name for name in FILES]
     paths[0].write_text(js, encoding="utf-8")
     shutil.copyfile(Path(__file__).with_name("view3d.js"), paths[1])
+    # a script, not JSON: NaN is a JavaScript literal
     paths[2].write_text("window.PIXMUSCLE_VIEW3D = " + json.dumps(data, separators=(",", ":")) + ";\n",
                         encoding="utf-8")
     return {"files": list(FILES), "plotly": version, "n_nodes": data["n_nodes"],
