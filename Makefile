@@ -1,23 +1,32 @@
-# pixmuscle — the two commands of the README (make demo, make test) set everything up themselves.
+# pixmuscle — the two commands of the README (make demo, make test) set up what they need themselves.
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.pixmuscle-installed
+DEMO_STAMP := $(VENV)/.pixmuscle-demo
 
 .PHONY: venv demo test bench bench-scale lint clean
 
-# (re)create the virtual environment and install pixmuscle with its extras when pyproject changes;
-# .ci/install-petsc adds the optional PETSc/MPI backend where it can (Debian/Ubuntu as root) and says why not elsewhere
-$(STAMP): pyproject.toml
+# `make demo` installs what the demo needs (pixmuscle and the interactive 3-D view: about a minute on a
+# fresh machine); `make test` adds everything the tests use: the test and dev tools, MKL PARDISO, dipy,
+# the optional PETSc/MPI backend (.ci/install-petsc: Debian/Ubuntu as root, else it says why not) and
+# headless Chromium for the report's browser test (.ci/install-browser, same rule). Both redo their
+# install when pyproject.toml changes.
+$(DEMO_STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test,dev,fast,dwi]"
+	$(BIN)/python -m pip install --quiet -e ".[view]"
+	touch $(DEMO_STAMP)
+
+$(STAMP): $(DEMO_STAMP)
+	$(BIN)/python -m pip install --quiet -e ".[view,test,dev,fast,dwi]"
 	.ci/install-petsc $(BIN)/python
+	.ci/install-browser
 	touch $(STAMP)
 
 venv: $(STAMP)
 
-demo: $(STAMP)
+demo: $(DEMO_STAMP)
 	$(BIN)/pixmuscle run configs/demo.yaml
 
 test: $(STAMP)

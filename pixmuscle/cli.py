@@ -1,16 +1,20 @@
 """Command-line interface (typer): a thin layer over :mod:`pixmuscle.stages` and :mod:`pixmuscle.pipeline`.
 
-Every command turns a :class:`~pixmuscle.errors.PixmuscleError` into one line on stderr and exit
-code 2; ``--debug`` shows the traceback instead. Ctrl-C and SIGTERM end it with one line and exit
-code 130 or 143 (docs/failures.md). Logs and progress go to stderr; the paths of the
-files a command wrote go to stdout, one per line, so ``$(pixmuscle report results.h5)`` is the
-report's ``index.html``.
+Every command turns a :class:`~pixmuscle.errors.PixmuscleError` into one line on stderr and an
+exit code (:data:`EXIT_CODES`); ``--debug`` shows the traceback instead; Ctrl-C and SIGTERM end it with one line and exit
+code 130 or 143 (docs/failures.md). Logs and progress go to
+stderr; the paths of the files a command wrote go to stdout, one per line, so
+``$(pixmuscle report results.h5)`` is the report's ``index.html``. A failed solve still prints
+what it wrote (the report of its converged steps, or the results file) before exiting with
+:data:`EXIT_SOLVE_FAILED`. The global options ``-v``/``-q``/``--debug`` work before or after the
+command name.
 """
 
 from __future__ import annotations
 
 import functools
 import importlib
+import inspect
 import logging
 import signal
 import sys
@@ -20,13 +24,27 @@ from pathlib import Path
 import typer
 
 from . import __version__
-from .errors import Interrupted, PixmuscleError
+from .errors import Interrupted, PixmuscleError, SolverError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, help=(
+#: a bad input (file, config key, value) or an output that could not be written
+EXIT_BAD_INPUT = 2
+#: a solve that stopped before its last load step; what it converged is written and its path printed
+EXIT_SOLVE_FAILED = 3
+#: exit codes of every command (documented in docs/failures.md)
+EXIT_CODES = {0: "success", 1: "a cohort or study in which some cases failed (the others ran)",
+              EXIT_BAD_INPUT: "bad input, or an output that could not be written",
+              EXIT_SOLVE_FAILED: "a failed solve (its converged steps are written and reported)",
+              130: "interrupted (Ctrl-C)", 143: "terminated (SIGTERM)"}
+
+# plain (click) help: flags without a type, options with their value's type (``-o, --output PATH``)
+app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode=None, help=(
     "pixmuscle: limb MRI + DTI → pixel-based meshfree (RKPM) muscle model → force.\n\n"
     "Stages: segment → build-model → coarsen → solve → report, or all at once with `run`. "
-    "Units: cm, N, N/cm²."))
-verify_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Verification against analytic and reference solutions.")
+    "Units: cm, N, N/cm².\n\n"
+    "Exit codes: 0 success; 1 a cohort or study in which some cases failed; 2 bad input or an output that "
+    "could not be written; 3 a failed solve (the converged steps are written, and the report or results "
+    "path is printed on stdout); 130 interrupted (Ctrl-C); 143 terminated (SIGTERM)."))
+verify_app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode=None, help="Verification against analytic and reference solutions.")
 app.add_typer(verify_app, name="verify")
 
 _STATE = {"debug": False}
@@ -44,31 +62,77 @@ def _load(module: str):
     return importlib.import_module(module)
 
 
+_VERBOSE_HELP = ("More log output on stderr: -v the details of every stage (load steps, segmentation), -vv debug "
+                 "messages (every Newton iteration) with time and logger name.")
+_QUIET_HELP = "Only warnings and errors."
+_DEBUG_HELP = "Show Python tracebacks."
+
+#: the global options again on every command, so that they work after the command name too
+_COMMAND_GLOBALS = [
+    inspect.Parameter("verbose_", inspect.Parameter.KEYWORD_ONLY, annotation=int,
+                      default=typer.Option(0, "--verbose", "-v", count=True, help=_VERBOSE_HELP, show_default=False)),
+    inspect.Parameter("quiet_", inspect.Parameter.KEYWORD_ONLY, annotation=bool,
+                      default=typer.Option(False, "--quiet", "-q", help=_QUIET_HELP, show_default=False)),
+    inspect.Parameter("debug_", inspect.Parameter.KEYWORD_ONLY, annotation=bool,
+                      default=typer.Option(False, "--debug", help=_DEBUG_HELP, show_default=False)),
+]
+
+
+def _apply_globals(verbose: int, quiet: bool, debug: bool) -> None:
+    """Combine the global options given after the command with those given before it."""
+    if not (verbose or quiet or debug):
+        return
+    from .progress import setup_logging
+
+    _STATE["debug"] = _STATE["debug"] or debug
+    _STATE["verbose"] = _STATE.get("verbose", 0) + verbose
+    _STATE["quiet"] = _STATE.get("quiet", False) or quiet
+    setup_logging(-1 if _STATE["quiet"] else _STATE["verbose"])
+
+
+def _solve_failed(exc: SolverError) -> None:
+    """Print what a failed solve left (its report, else its results file) and exit with its own code."""
+    made = [p for p in (getattr(exc, "report", None), getattr(exc, "results_path", None)) if p]
+    if made and Path(made[0]).exists():
+        _out(made[0])
+    typer.echo(f"error: {exc}", err=True)
+    raise typer.Exit(EXIT_SOLVE_FAILED)
+
+
 def _guard(fn: Callable) -> Callable:
-    """Run a command, mapping PixmuscleError to a one-line message and exit code 2."""
+    """Run a command, mapping PixmuscleError to a one-line message and its exit code; adds the
+    global options (-v, -q, --debug) to the command."""
 
     @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
+    def wrapper(*args, verbose_: int = 0, quiet_: bool = False, debug_: bool = False, **kwargs):
+        _apply_globals(verbose_, quiet_, debug_)
         try:
             return fn(*args, **kwargs)
+        except SolverError as exc:
+            if _STATE["debug"]:
+                raise
+            _solve_failed(exc)
         except PixmuscleError as exc:
             if _STATE["debug"]:
                 raise
             typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2) from None
+            raise typer.Exit(EXIT_BAD_INPUT) from None
         except OSError as exc:  # a file system refusing a write (disk full, read-only): one line too
             from .outdir import WRITE_ERRNOS, describe_os_error
 
             if _STATE["debug"] or exc.errno not in WRITE_ERRNOS:
                 raise
             typer.echo(f"error: {describe_os_error(exc, verb=None)}", err=True)
-            raise typer.Exit(2) from None
+            raise typer.Exit(EXIT_BAD_INPUT) from None
         except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (see main)
             if not isinstance(exc, Interrupted):
                 exc = Interrupted("SIGINT")
             typer.echo(exc.message(), err=True)
             raise typer.Exit(exc.exit_code) from None
 
+    sig = inspect.signature(fn)
+    wrapper.__signature__ = sig.replace(parameters=[*sig.parameters.values(), *_COMMAND_GLOBALS])
+    wrapper.__annotations__ = {**fn.__annotations__, "verbose_": int, "quiet_": bool, "debug_": bool}
     return wrapper
 
 
@@ -80,16 +144,14 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _main(
-    verbose: int = typer.Option(0, "--verbose", "-v", count=True, help=(
-        "More log output on stderr: -v the details of every stage (load steps, segmentation), -vv debug "
-        "messages (every Newton iteration) with time and logger name.")),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="Only warnings and errors."),
-    debug: bool = typer.Option(False, "--debug", help="Show Python tracebacks."),
+    verbose: int = typer.Option(0, "--verbose", "-v", count=True, help=_VERBOSE_HELP, show_default=False),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help=_QUIET_HELP, show_default=False),
+    debug: bool = typer.Option(False, "--debug", help=_DEBUG_HELP, show_default=False),
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version."),
 ) -> None:
     from .progress import setup_logging
 
-    _STATE["debug"] = debug
+    _STATE.update(debug=debug, verbose=verbose, quiet=quiet)
     setup_logging(-1 if quiet else verbose)
 
 
@@ -97,6 +159,13 @@ def _synthetic(config: Path) -> bool:
     from .pipeline import load_config
 
     return bool(load_config(config).synthetic)
+
+
+def _config_folder(config: Path):
+    """Stage files written inside record their input paths relative to the config file's folder too."""
+    from .store import config_folder
+
+    return config_folder(config.parent)
 
 
 def _section(config: Path, name: str):
@@ -116,7 +185,8 @@ def segment(
     cfg = _section(config, "segment")
     if cfg is None:
         raise PixmuscleError(f"{config}: no `segment` section")
-    mod.run_segment(cfg, output, synthetic=_synthetic(config))
+    with _config_folder(config):
+        mod.run_segment(cfg, output, synthetic=_synthetic(config))
     _out(output)
 
 
@@ -144,7 +214,8 @@ def build_model(
             raise PixmuscleError(f"{segmentation}: segmentation file not found (run `pixmuscle segment --config "
                                  f"{config} -o {segmentation}` first)")
         bm = _with_segmentation(bm, segmentation.resolve(), cfg.base_dir)
-    mod.run_build_model(bm, output, synthetic=cfg.synthetic)
+    with _config_folder(config):
+        mod.run_build_model(bm, output, synthetic=cfg.synthetic)
     _out(output)
 
 
@@ -175,7 +246,7 @@ def solve(
     from . import parallel
 
     mod = _load("pixmuscle.stages.solve")
-    with parallel.abort_on_failure():
+    with parallel.abort_on_failure(), _config_folder(config):
         parallel.quiet_other_ranks()
         mod.run_solve(model, _section(config, "solve"), output, synthetic=_synthetic(config))
     if parallel.rank() == 0:
@@ -304,7 +375,7 @@ def main() -> None:  # console-script entry point
         if _STATE["debug"]:
             raise
         print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
+        sys.exit(EXIT_SOLVE_FAILED if isinstance(exc, SolverError) else EXIT_BAD_INPUT)
 
 
 if __name__ == "__main__":

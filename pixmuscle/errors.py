@@ -1,7 +1,8 @@
 """Exception types shared by every layer of pixmuscle.
 
 The command-line interface turns a :class:`PixmuscleError` into a one-line message and exit
-code 2 (no traceback unless ``--debug``); anything else is a bug and keeps its traceback.
+code 2, 3 for a :class:`SolverError` (no traceback unless ``--debug``); anything else is a bug and
+keeps its traceback.
 """
 
 

@@ -79,7 +79,12 @@ def abort_on_failure():
         msg = str(exc) if isinstance(exc, PixmuscleError | ValueError) else f"{type(exc).__name__}: {exc}"
         sys.stderr.write(f"error{where}: {msg}\n")
         sys.stderr.flush()
-        _abort(comm, 2 if isinstance(exc, PixmuscleError) else 1)
+        from .errors import SolverError
+
+        if isinstance(exc, SolverError) and comm.getRank() == 0 and getattr(exc, "results_path", None):
+            sys.stdout.write(f"{exc.results_path}\n")  # what the failed solve wrote, as without MPI
+            sys.stdout.flush()
+        _abort(comm, 3 if isinstance(exc, SolverError) else 2 if isinstance(exc, PixmuscleError) else 1)
 
 
 def _abort(comm, code: int) -> None:

@@ -72,6 +72,8 @@ class Stage:
     on_failure : Stage, optional
         Run when this stage fails with a :class:`~pixmuscle.errors.SolverError` (a solve's report
         stage: the report of the converged steps must replace the report of an older run).
+    config_dir : Path, optional
+        Folder of the config file: the output's provenance gives input paths relative to it too.
     """
 
     kind: str
@@ -82,6 +84,7 @@ class Stage:
     config: Any = None
     inputs: tuple = ()
     on_failure: Any = None
+    config_dir: Path | None = None
 
     @property
     def schema(self) -> tuple[str, int] | None:
@@ -136,14 +139,17 @@ def execute_stage(stage: Stage, force: bool = False) -> str:
     """
     if not force and is_up_to_date(stage):
         return "skipped"
+    from .store import config_folder
+
     module, func = stage.action.split(":")
     # the report folder itself is put in place as a unit by the stage (never created empty here)
     (stage.output.parent.parent if stage.kind == "report" else stage.output.parent).mkdir(parents=True, exist_ok=True)
     try:
-        getattr(importlib.import_module(module), func)(**stage.kwargs)
-    except SolverError:
+        with config_folder(stage.config_dir):
+            getattr(importlib.import_module(module), func)(**stage.kwargs)
+    except SolverError as exc:
         if stage.on_failure is not None:
-            _after_failure(stage.on_failure)
+            exc.report = _after_failure(stage.on_failure)  # the CLI prints it
         raise
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: say which stage was running
         if not isinstance(exc, Interrupted):
@@ -154,8 +160,9 @@ def execute_stage(stage: Stage, force: bool = False) -> str:
     return "ran"
 
 
-def _after_failure(report: Stage) -> None:
-    """Report of a failed solve's partial results; if even that fails, no report (never a stale one)."""
+def _after_failure(report: Stage) -> str | None:
+    """Report of a failed solve's partial results, returning its path; if even that fails, no report
+    (never a stale one) and None."""
     import logging
     import shutil
 
@@ -167,9 +174,11 @@ def _after_failure(report: Stage) -> None:
         module, func = report.action.split(":")
         index = getattr(importlib.import_module(module), func)(**report.kwargs)
         log.error("the solve failed; the report shows its converged steps: %s", index)
+        return str(index)
     except (PixmuscleError, OSError) as exc:
         shutil.rmtree(folder, ignore_errors=True)
         log.error("the solve failed and its report could not be written (%s); the older report was removed", exc)
+        return None
 
 
 #: the ``--from`` stage that redoes the output of each stage kind
@@ -468,7 +477,7 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
         # a failed solve still gets its report (converged steps, reason), never an older run's
         stages = [dataclasses.replace(st, on_failure=report) if st.kind == "solve" else st for st in stages]
         stages.append(report)
-    return stages
+    return [dataclasses.replace(st, config_dir=getattr(cfg, "base_dir", None)) for st in stages]
 
 
 def _experiment_stages(cfg: Any, which: str, mpath: Path, rpath: Path, stages: list | None) -> dict[str, Path]:

@@ -12,20 +12,25 @@ same file. :func:`atomic_folder` does the same for a folder of outputs (the repo
 attributes:
 
 ``schema`` (str), ``schema_version`` (int), ``units`` (JSON), ``config`` (YAML of the config
-section that produced the file), ``provenance`` (JSON: package version, UTC time, command line,
-SHA-256 and path of every input file, and a hash of the config section).
+section that produced the file), ``provenance`` (JSON, :func:`provenance`: package version and the
+git commit of its source tree, the versions of the numerical libraries used, UTC time, command line,
+SHA-256 and path of every input file (also relative to the config file's folder), and a hash of the
+config section).
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import datetime as _dt
+import functools
 import hashlib
 import io
 import json
 import os
 import shutil
 import socket
+import subprocess
 import sys
 import tempfile
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -81,17 +86,124 @@ def _plain(obj: Any) -> Any:
     return obj
 
 
+#: folder of the config file whose stage is being written (paths in the provenance are also given relative to it)
+_CONFIG_DIR: contextvars.ContextVar[Path | None] = contextvars.ContextVar("pixmuscle_config_dir", default=None)
+
+
+@contextlib.contextmanager
+def config_folder(path: str | os.PathLike | None) -> Iterator[None]:
+    """Within this block, stage files record their input paths relative to ``path`` too (the folder
+    of the config file, against which the config's own paths are resolved)."""
+    token = _CONFIG_DIR.set(None if path is None else Path(path).resolve())
+    try:
+        yield
+    finally:
+        _CONFIG_DIR.reset(token)
+
+
+@functools.lru_cache(maxsize=1)
+def source_commit() -> dict | None:
+    """Git commit of the pixmuscle source tree, when the package runs from a git checkout.
+
+    Returns
+    -------
+    dict or None
+        ``{"commit": 40-hex SHA-1, "modified": True when tracked files under pixmuscle/ differ from it}``;
+        None for an installed (non-checkout) package or without git.
+    """
+    root = Path(__file__).resolve().parent.parent
+    if not (root / ".git").exists():
+        return None
+    def git(*args):
+        return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10)
+    try:
+        head = git("rev-parse", "HEAD")
+        if head.returncode != 0:
+            return None
+        status = git("status", "--porcelain", "--untracked-files=no", "--", "pixmuscle")
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return {"commit": head.stdout.strip(), "modified": bool(status.stdout.strip()) if status.returncode == 0 else None}
+
+
+def _dist_version(name: str) -> str | None:
+    from importlib import metadata
+
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def _mkl_version() -> str | None:
+    """MKL's own version string, once PARDISO was loaded in this process (None: not used)."""
+    pardiso = sys.modules.get("pixmuscle.mechanics.pardiso")
+    lib = getattr(pardiso, "_LIB", None)
+    if lib is None:
+        return None
+    try:
+        import ctypes
+
+        buf = ctypes.create_string_buffer(256)
+        lib.MKL_Get_Version_String(buf, len(buf))
+        text = buf.value.decode(errors="replace").strip()
+    except (AttributeError, OSError):
+        text = ""
+    return text or f"mkl {_dist_version('mkl') or '?'}"
+
+
+def library_versions() -> dict[str, str]:
+    """Versions of the libraries whose numbers shape the results.
+
+    numpy, scipy, pyamg, h5py and meshio always (dependencies); MKL (PARDISO), VTK and petsc4py
+    only when this process used them. Missing packages are left out.
+    """
+    out = {"python": sys.version.split()[0]}
+    for name in ("numpy", "scipy", "pyamg", "h5py", "meshio"):
+        v = _dist_version(name)
+        if v is not None:
+            out[name] = v
+    mkl = _mkl_version()
+    if mkl is not None:
+        out["mkl_pardiso"] = mkl
+    if "vtkmodules" in sys.modules:
+        out["vtk"] = _dist_version("vtk") or getattr(sys.modules["vtkmodules"], "__version__", "?")
+    if "petsc4py" in sys.modules:
+        out["petsc4py"] = _dist_version("petsc4py") or "?"
+        try:
+            from petsc4py import PETSc
+
+            out["petsc"] = ".".join(map(str, PETSc.Sys.getVersion()))
+        except Exception:  # petsc4py imported but not initialised: its own version is enough
+            pass
+    return out
+
+
 def provenance(inputs: Sequence[str | os.PathLike] = (), config: Any = None) -> dict:
-    """Provenance record: package version, UTC time, command line, input hashes, config hash."""
-    return {
+    """Provenance record of a stage file.
+
+    Keys: ``package``, ``version``, ``git`` (:func:`source_commit`), ``libraries``
+    (:func:`library_versions`), ``created_utc``, ``argv``, ``python``, ``inputs`` (absolute path →
+    SHA-256), ``config_dir`` and ``inputs_relative`` (path relative to the config file's folder →
+    SHA-256; only inside :func:`config_folder`), ``config_sha256``.
+    """
+    hashes = {str(Path(p)): sha256_file(p) for p in inputs}
+    rec = {
         "package": "pixmuscle",
         "version": __version__,
+        "git": source_commit(),
+        "libraries": library_versions(),
         "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "argv": list(sys.argv),
         "python": sys.version.split()[0],
-        "inputs": {str(Path(p)): sha256_file(p) for p in inputs},
+        "inputs": hashes,
         "config_sha256": config_hash(config) if config is not None else None,
     }
+    base = _CONFIG_DIR.get()
+    if base is not None:
+        rec["config_dir"] = str(base)
+        rec["inputs_relative"] = {os.path.relpath(Path(p).resolve(), base): sha for p, sha in hashes.items()}
+    return rec
 
 
 def write_stage(

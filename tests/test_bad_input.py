@@ -134,9 +134,10 @@ def test_failed_solve_rewrites_the_report_as_failed(solved, tmp_path):
     raw = yaml.safe_load(cfg_path.read_text())
     raw["solve"]["newton"] = {"max_iterations": 2, "max_cutbacks": 0}   # step 1 cannot converge in 2 iterations
     write_config(cfg_path, raw)
-    r = cli("run", cfg_path)
-    assert r.exit_code == 2
+    r = proc("run", cfg_path)                                          # the real command, as a script sees it
+    assert r.returncode == 3                                           # a failed solve, not a bad input (2)
     assert "load step 1 of 2" in error_line(r.stderr)
+    assert r.stdout.splitlines() == [str(out / "report" / "index.html")]   # the report that says why
     with h5py.File(out / "results_coarse.h5") as f:
         assert str(f.attrs["status"]).startswith("failed")
     summary = json.loads((out / "report/summary.json").read_text())
@@ -145,6 +146,21 @@ def test_failed_solve_rewrites_the_report_as_failed(solved, tmp_path):
     html = (out / "report/index.html").read_text()
     assert "did not complete" in html and "load step 1 of 2" in html
     assert leftovers(out) == []
+
+
+def test_failed_solve_stage_prints_its_results_and_exits_3(solved, tmp_path):
+    """The `solve` command alone: a failed solve prints the results file of its converged steps, exit 3."""
+    cfg_path, out = copy_run(solved, tmp_path)
+    raw = yaml.safe_load(cfg_path.read_text())
+    raw["solve"]["newton"] = {"max_iterations": 2, "max_cutbacks": 0}
+    write_config(cfg_path, raw)
+    res = tmp_path / "failed.h5"
+    r = proc("solve", out / "model_coarse.h5", "-c", cfg_path, "-o", res, "-q")   # -q after the command
+    assert r.returncode == 3, r.stderr
+    assert r.stdout.splitlines() == [str(res)] and "load step 1 of 2" in error_line(r.stderr)
+    assert "INFO" not in r.stderr and "solve:" not in r.stderr.replace(error_line(r.stderr), "")
+    with h5py.File(res) as f:
+        assert str(f.attrs["status"]).startswith("failed")
 
 
 def test_max_iterations_one_is_a_config_error(solved, tmp_path):

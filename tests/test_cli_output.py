@@ -65,3 +65,33 @@ def test_verbosity_changes_what_is_logged(tiny_model):
     assert "load step 1 of 1" in v and "Newton iteration 0" not in v
     assert "Newton iteration 0" in vv and "DEBUG" in vv
     assert q == ""
+
+
+def test_global_options_work_after_the_command(tiny_model):
+    """-v / -vv / -q / --debug where users type them: after the command name, as before it."""
+    d = tiny_model
+    after = {flags: _cli("solve", d / "model.h5", "-c", d / "c.yaml", "-o", d / f"a{len(flags)}.h5", *flags)
+             for flags in (("-vv",), ("-q",))}
+    for flags, p in after.items():
+        assert p.returncode == 0, (flags, p.stderr)
+        assert p.stdout == f"{d / f'a{len(flags)}.h5'}\n"
+    assert "Newton iteration 0" in after[("-vv",)].stderr and "DEBUG" in after[("-vv",)].stderr
+    assert after[("-q",)].stderr == ""
+    p = _cli("run", d / "missing.yaml", "--debug")
+    assert p.returncode != 0 and "Traceback" in p.stderr and "No such option" not in p.stderr
+    p = _cli("run", d / "missing.yaml", "-v")
+    assert p.returncode == 2 and "config file not found" in p.stderr and "No such option" not in p.stderr
+
+
+@pytest.mark.parametrize("args", [(), ("run",), ("solve",), ("report",), ("verify", "rk")])
+def test_help_shows_flags_without_a_value(args):
+    """Flags (-q, --force, --debug, --help) take no value, so the help shows none."""
+    p = _cli(*args, "--help")
+    assert p.returncode == 0, p.stderr
+    assert "<bool>" not in p.stdout and "BOOLEAN" not in p.stdout
+    assert "-q, --quiet" in p.stdout and "--debug" in p.stdout
+
+
+def test_help_lists_the_exit_codes():
+    p = _cli("--help")
+    assert "3 a failed solve" in " ".join(p.stdout.split())

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import html
 import json
+import re
 import xml.etree.ElementTree as ET
 from types import SimpleNamespace
 
@@ -300,7 +301,9 @@ def test_html_page(done):
     assert text.count("<img") >= 4
     assert "Phantom leg" in text and "Synthetic inputs" in text
     assert "complete" in text
-    assert "<script" not in text
+    # the only scripts: the 3-D view's files beside the page (no inline code, nothing from the network)
+    assert re.findall(r"<script[^>]*>", text) == [f'<script src="{f}">' for f in ("plotly.min.js", "view3d_data.js", "view3d.js")]
+    assert all((out / f).is_file() for f in ("plotly.min.js", "view3d_data.js", "view3d.js"))
     assert "direct-lu" in text  # other solver attributes are shown
     assert "activation" in text and "tissue_table.csv" in text
     saved = json.loads((out / "summary.json").read_text())

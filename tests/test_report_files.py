@@ -142,14 +142,6 @@ def test_solver_info_table_and_round_off(tmp_path):
     assert summary["solver_info"]["linear_solver"] == "direct"
 
 
-def test_view3d_is_drawn(tmp_path):
-    truth = write_results_fixture(tmp_path / "results.h5", n_steps=1)
-    summary = make_report(truth.path, tmp_path / "out", ReportConfig(dpi=30, vtu=False, slices=False))
-    assert (tmp_path / "out" / "view3d.png").read_bytes()[:4] == b"\x89PNG"
-    assert summary["view3d"].startswith(("VTK", "matplotlib"))
-    assert "Model in 3-D" in (tmp_path / "out" / "index.html").read_text()
-
-
 # ------------------------------------------------------------------------------------------ stress tensors
 def _tensors(voigt):
     """(N, 6) xx yy zz xy yz xz (results.h5) → (N, 3, 3)."""

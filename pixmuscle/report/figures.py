@@ -196,21 +196,6 @@ def _segmentation(ctx: Context) -> Path | None:
     return plot_overlays(mri, seg, ctx.outdir / "segmentation_qc.png", dpi=ctx.cfg.dpi)
 
 
-@figure("view3d", "model", "The model coloured by muscle and tissue, and |u| and the largest principal stress on "
-                           "the deformed body (displacements drawn to scale)")
-def _view3d(ctx: Context) -> Path | None:
-    if not ctx.cfg.view3d:
-        return None
-    step = ctx.summary.get("field_step")
-    if step is None:
-        return None
-    from .view3d import render_model
-
-    path, how = render_model(ctx.res, int(step), ctx.outdir / "view3d.png", dpi=ctx.cfg.dpi)
-    ctx.summary["view3d"] = how
-    return path
-
-
 def _slice_step(ctx: Context) -> int | None:
     return ctx.summary.get("field_step")
 

@@ -153,10 +153,13 @@ def _provenance_rows(stages: Sequence[Mapping[str, Any]]) -> list[list]:
     rows = []
     for r in stages:
         prov = r.get("provenance") or {}
-        for p, sha in (prov.get("inputs") or {}).items():
-            rows.append([r["stage"], p, sha])
-        rows.append([r["stage"], f"(output) {r.get('file', '')}",
-                     f"pixmuscle {prov.get('version', '?')}, {prov.get('created_utc', '?')}"])
+        relative = list((prov.get("inputs_relative") or {}).keys())
+        for i, (p, sha) in enumerate((prov.get("inputs") or {}).items()):
+            rows.append([r["stage"], relative[i] if i < len(relative) else p, sha])  # relative to the config
+        git = prov.get("git") or {}
+        made = f"pixmuscle {prov.get('version', '?')}" + (f" (git {git['commit'][:12]}{', modified' if git.get('modified') else ''})"
+                                                          if git.get("commit") else "")
+        rows.append([r["stage"], f"(output) {r.get('file', '')}", f"{made}, {prov.get('created_utc', '?')}"])
     return rows
 
 
@@ -265,6 +268,32 @@ def _displacement_section(summary: Mapping[str, Any], figures: Mapping[str, Any]
     return parts
 
 
+def view3d_section(info: Mapping[str, Any]) -> str:
+    """The interactive 3-D view (:mod:`pixmuscle.report.view3d`): controls, the plot, and a message
+    that stays visible when the scripts beside the page are missing or plotly was not installed."""
+    if "error" in info:
+        return f'<p class="note">Interactive 3-D view not written: {esc(info["error"])}.</p>'
+    shown = (f"all {info['n_nodes']} nodes" if info["n_shown"] == info["n_nodes"]
+             else f"{info['n_shown']} of {info['n_nodes']} nodes (every k-th voxel in-plane)")
+    options = "".join(f'<option value="{k}"{" selected" if k == "umag" else ""}>{esc(v)}</option>' for k, v in (
+        ("umag", "displacement magnitude |u| [cm]"), ("s1", "largest principal stress [N/cm²]"), ("tissue", "tissue"),
+        ("muscle", "muscle"), ("fibre", "fibre angle to the long axis [°]")))
+    return (
+        '<div id="view3d">'
+        '<p class="view3d-missing note">The interactive view needs the files <code>plotly.min.js</code>, '
+        '<code>view3d.js</code> and <code>view3d_data.js</code> beside this page, and JavaScript.</p>'
+        '<div class="view3d-controls" hidden>'
+        f'<label>field <select id="view3d-field">{options}</select></label> '
+        '<label>load step <input id="view3d-step" type="range" step="1"></label> '
+        '<span id="view3d-step-label"></span></div>'
+        '<div id="view3d-plot" style="width:100%;height:640px"></div></div>'
+        f'<p class="foot">Nodes (voxel centres) on the deformed body, displacements to scale: {esc(shown)}. '
+        "Drag to rotate, scroll to zoom; the camera button saves a PNG. Colour scales are fixed over all "
+        f"steps. Drawn with plotly.js {esc(info['plotly'])} (written beside the page: no network needed).</p>"
+        '<script src="plotly.min.js"></script><script src="view3d_data.js"></script>'
+        '<script src="view3d.js"></script>')
+
+
 def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissue: Mapping[str, Any],
                 report_config: Mapping[str, Any], sections: Sequence[str] = ()) -> str:
     """The report page of one results file.
@@ -361,13 +390,9 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
             parts.append(f'<p class="foot">From <code>{esc(qc["file"])}</code>; data: '
                          "<code>segmentation_areas.csv</code>.</p>")
 
-    model_figs = _figures(figures, "model")
-    if model_figs:
+    if summary.get("view3d"):
         parts.append(f"<h2>{esc(SECTIONS['model'])}</h2>")
-        parts += model_figs
-        if summary.get("view3d"):
-            parts.append(f'<p class="foot">Drawn with {esc(summary["view3d"])}; state shown: step '
-                         f"{esc(summary.get('field_step'))}.</p>")
+        parts.append(view3d_section(summary["view3d"]))
 
     parts.append(f"<h2>{esc(SECTIONS['slices'])}</h2>")
     slice_figs = _figures(figures, "slices")
@@ -424,5 +449,5 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
     parts.append(kv_table({"results SHA-256": summary["results_sha256"], **summary["versions"]}))
     prov_rows = _provenance_rows(summary.get("stages", []))
     if prov_rows:
-        parts.append(table(["stage", "input file", "SHA-256"], prov_rows))
+        parts.append(table(["stage", "input file (relative to the config file where recorded)", "SHA-256"], prov_rows))
     return page(summary["title"], parts)

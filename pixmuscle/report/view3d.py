@@ -1,205 +1,179 @@
-"""A 3-D picture of the model for the report: coloured by muscle and tissue, and the displacement
-magnitude and largest principal stress on the deformed body.
+"""Interactive 3-D view of the model for the report page, drawn in the browser with plotly.js.
 
-Rendered off-screen with VTK (EGL, else OSMesa; no display needed) when the ``vtk`` package is
-installed and a render window starts; otherwise drawn with matplotlib's 3-D axes (the outer voxel
-faces as a point cloud), and the report says which and why.
+The nodes (voxel centres) are shown as a point cloud on the deformed body of a chosen load step,
+coloured by a chosen field: displacement magnitude, largest principal Cauchy stress, tissue (with
+IMAT and subcutaneous fat apart), muscle, or the fibre direction's angle to the long (z) axis.
+The reader rotates and zooms with the mouse, picks the field from a list and the step with a
+slider. Large models are decimated in-plane to at most ``max_points`` nodes (every k-th voxel
+in x and y, all slices).
+
+Three files are written beside ``index.html`` (no network is needed where the report is opened):
+``plotly.min.js`` (shipped inside the ``plotly`` Python package), ``view3d.js`` (the viewer, shipped
+with pixmuscle) and ``view3d_data.js`` (this model's arrays). ``plotly`` is optional
+(``pip install 'pixmuscle[view]'``); without it :func:`write_view` says so and the page shows why.
 """
 
 from __future__ import annotations
 
+import json
+import math
+import shutil
 from pathlib import Path
 
 import numpy as np
 
 from ..mechanics.results import Results
-from ..model.tissues import CONNECTIVE_TISSUE, FAT
-from .fields import cells_to_points, voxel_hexahedra
+from ..model.tissues import CONNECTIVE_TISSUE, FAT, MUSCLE
 
-_TISSUE_RGB = {CONNECTIVE_TISSUE: (60, 170, 90), FAT: (235, 200, 70)}
+#: files written beside index.html
+FILES = ("plotly.min.js", "view3d.js", "view3d_data.js")
 
-
-def category_colours(tissue: np.ndarray, muscle_id: np.ndarray, n_muscles: int) -> np.ndarray:
-    """(N, 3) uint8: one colour per muscle (tab10/tab20), green connective tissue, yellow fat."""
-    import matplotlib
-
-    cmap = matplotlib.colormaps["tab10" if n_muscles <= 10 else "tab20"]
-    rgb = np.zeros((tissue.shape[0], 3), np.uint8)
-    mus = np.array([[int(255 * c) for c in cmap(i % cmap.N)[:3]] for i in range(max(n_muscles, 1))], np.uint8)
-    m = (muscle_id > 0) & (tissue == 1)
-    rgb[m] = mus[(muscle_id[m] - 1) % len(mus)]
-    rgb[(tissue == 1) & ~m] = (200, 80, 80)
-    for code, c in _TISSUE_RGB.items():
-        rgb[tissue == code] = c
-    return rgb
+#: legend classes of the tissue field: (name, colour)
+TISSUE_CLASSES = (("muscle", "#c0392b"), ("connective tissue (IMCT, aponeurosis)", "#27ae60"),
+                  ("intermuscular fat (IMAT)", "#f39c12"), ("other fat (subcutaneous)", "#f7dc6f"))
 
 
-def render_model(res: Results, step: int, path: str | Path, *, dpi: int = 120) -> tuple[Path | None, str]:
-    """Write the three-panel 3-D view of state ``step``; returns (path, how it was drawn)."""
-    path = Path(path)
+def decimate(ijk: np.ndarray, max_points: int) -> np.ndarray:
+    """Indices of the nodes kept: every k-th voxel in x and y (all slices), the smallest k ≥ 1 that
+    keeps at most ``max_points``.
+
+    Parameters
+    ----------
+    ijk : (N, 3) int
+        Voxel index of each node.
+    max_points : int
+        Upper bound on the nodes kept (≥ 1).
+
+    Returns
+    -------
+    (M,) int64
+        Sorted node indices, M ≤ max_points (M = N when N ≤ max_points).
+    """
+    ijk = np.asarray(ijk)
+    n = ijk.shape[0]
+    if n <= max_points:
+        return np.arange(n, dtype=np.int64)
+    k = max(2, int(math.floor(math.sqrt(n / max_points))))
+    while True:
+        keep = np.flatnonzero((ijk[:, 0] % k == 0) & (ijk[:, 1] % k == 0))
+        if keep.size <= max_points:
+            return keep.astype(np.int64)
+        k += 1
+
+
+def tissue_class(tissue: np.ndarray, imat: np.ndarray | None) -> np.ndarray:
+    """(N,) int8 index into :data:`TISSUE_CLASSES`: muscle, connective tissue, IMAT, other fat."""
+    tissue = np.asarray(tissue)
+    imat = np.zeros(tissue.shape, bool) if imat is None else np.asarray(imat, bool)
+    out = np.full(tissue.shape, 3, np.int8)
+    out[tissue == MUSCLE] = 0
+    out[tissue == CONNECTIVE_TISSUE] = 1
+    out[(tissue == FAT) & imat] = 2
+    return out
+
+
+def fibre_angle_deg(fiber: np.ndarray) -> np.ndarray:
+    """Angle between the fibre direction and the z (long) axis, degrees in [0, 90] (fibres have no
+    sign); NaN where the fibre vector is zero. (N, 3) → (N,)."""
+    f = np.asarray(fiber, float)
+    norm = np.linalg.norm(f, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = np.abs(f[:, 2]) / norm
+    return np.degrees(np.arccos(np.clip(c, 0.0, 1.0)))
+
+
+def _rounded(a: np.ndarray, step: float) -> list:
+    """Values rounded to the decimal place of ``step`` (a small file), flattened; NaN stays NaN
+    (written as JavaScript's ``NaN``)."""
+    digits = max(0, -int(math.floor(math.log10(step))))
+    return np.round(np.asarray(a, float), digits).ravel().tolist()
+
+
+def view_data(res: Results, steps: np.ndarray, *, imat: np.ndarray | None = None, max_points: int = 20000) -> dict:
+    """The arrays the browser draws (plain JSON-ready data).
+
+    Parameters
+    ----------
+    res : Results
+    steps : (S,) int
+        Stored states offered on the step slider (converged ones).
+    imat : (N,) bool, optional
+        Fat nodes counted as IMAT (the report's tissue table), shown apart from other fat.
+    max_points : int
+        Decimate larger models to at most this many nodes (:func:`decimate`).
+
+    Returns
+    -------
+    dict
+        ``X`` (flat 3M reference coordinates, cm), ``u`` (S lists of 3M displacements, cm), ``umag``
+        and ``s1`` (S lists of M: |u| cm, largest principal Cauchy stress N/cm²; ``s1`` entries None
+        when the results hold no stress), ``tissue`` (M class indices), ``tissue_classes`` (names,
+        colours), ``muscle`` (M ids, 0 = none), ``muscle_names``, ``fibre_angle`` (M degrees, NaN off
+        muscle), ``steps``, ``alpha``, ``n_nodes``, ``n_shown``.
+    """
     m = res.model
-    fields = res.step(step)
-    width = int(13 * dpi)
-    try:
-        return _render_vtk(res, fields, path, width), "VTK, off-screen"
-    except Exception as exc:  # no vtk, no EGL/OSMesa: fall back, and say why
-        reason = f"{type(exc).__name__}: {exc}".splitlines()[0][:200]
-    _render_matplotlib(m, fields, path, dpi)
-    return path, f"matplotlib 3-D point cloud (VTK off-screen rendering unavailable: {reason})"
-
-
-def _render_vtk(res: Results, fields, path: Path, width: int) -> Path:
-    import vtkmodules.vtkRenderingOpenGL2 as gl
-    from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
-    from vtkmodules.vtkCommonCore import vtkObject, vtkPoints
-    from vtkmodules.vtkCommonDataModel import VTK_HEXAHEDRON, vtkCellArray, vtkUnstructuredGrid
-    from vtkmodules.vtkFiltersGeometry import vtkDataSetSurfaceFilter
-    from vtkmodules.vtkIOImage import vtkPNGWriter
-    from vtkmodules.vtkRenderingAnnotation import vtkScalarBarActor
-    from vtkmodules.vtkRenderingCore import (
-        vtkActor,
-        vtkDataSetMapper,
-        vtkRenderer,
-        vtkTextActor,
-        vtkWindowToImageFilter,
-    )
-
-    vtkObject.GlobalWarningDisplayOff()
-    from vtkmodules.vtkCommonCore import vtkLookupTable
-
-    m = res.model
-    # cut-away: the half y <= centre, so that the cross-section with the muscles is seen
-    keep = m.X[:, 1] <= np.median(m.X[:, 1])
-    points, hexa = voxel_hexahedra(m.ijk[keep], m.origin, m.spacing)
-    u_pts = cells_to_points(hexa, fields.u[keep], points.shape[0])
-    umag = np.linalg.norm(fields.u[keep], axis=1)
-    stress = None if fields.max_principal is None else fields.max_principal[keep]
-
-    def lut(name):
-        import matplotlib
-
-        cm = matplotlib.colormaps[name]
-        t = vtkLookupTable()
-        t.SetNumberOfTableValues(256)
-        for i in range(256):  # 256 table entries
-            t.SetTableValue(i, *cm(i / 255.0))
-        t.Build()
-        return t
-
-    def grid(pts, scalars=None, rgb=None):
-        g = vtkUnstructuredGrid()
-        p = vtkPoints()
-        p.SetData(numpy_to_vtk(np.ascontiguousarray(pts, float), deep=True))
-        g.SetPoints(p)
-        ca = vtkCellArray()
-        ca.SetData(numpy_to_vtkIdTypeArray(np.arange(0, 8 * hexa.shape[0] + 1, 8, dtype=np.int64), deep=True),
-                   numpy_to_vtkIdTypeArray(np.ascontiguousarray(hexa.ravel(), np.int64), deep=True))
-        g.SetCells(VTK_HEXAHEDRON, ca)
-        arr = numpy_to_vtk(np.ascontiguousarray(rgb if rgb is not None else scalars), deep=True)
-        arr.SetName("c")
-        g.GetCellData().SetScalars(arr)
-        surf = vtkDataSetSurfaceFilter()
-        surf.SetInputData(g)
-        surf.Update()
-        return surf.GetOutput()
-
-    colours = category_colours(m.tissue[keep], m.muscle_id[keep], len(m.muscle_names))
-    panels = [("muscles and tissues (reference, cut-away)", grid(points, rgb=colours), None),
-              ("|u| [cm], deformed body", grid(points + u_pts, scalars=umag), (umag, "|u| [cm]", "viridis"))]
-    if stress is not None:
-        panels.append(("max principal Cauchy stress, deformed", grid(points + u_pts, scalars=stress),
-                       (stress, "N/cm^2", "magma")))
-    win = None
-    for cls in ("vtkEGLRenderWindow", "vtkOSOpenGLRenderWindow"):
-        try:
-            win = getattr(gl, cls)()
-            win.SetOffScreenRendering(1)
-            win.SetSize(width, int(width * 0.36))
-            win.Render()
-            break
-        except Exception:  # try the next off-screen backend
-            win = None
-    if win is None:
-        raise RuntimeError("no off-screen OpenGL context (EGL or OSMesa)")
-    n = len(panels)
-    centre = points.mean(axis=0)
-    span = float(np.ptp(points, axis=0).max())
-    for i, (title, poly, sc) in enumerate(panels):
-        ren = vtkRenderer()
-        ren.SetViewport(i / n, 0.0, (i + 1) / n, 1.0)
-        ren.SetBackground(1.0, 1.0, 1.0)
-        mapper = vtkDataSetMapper()
-        mapper.SetInputData(poly)
-        mapper.SetScalarModeToUseCellData()
-        if sc is None:
-            mapper.SetColorModeToDirectScalars()
+    keep = decimate(m.ijk, max_points)
+    spacing = float(np.min(m.spacing))
+    ustep = max(spacing * 1e-4, 1e-7)
+    u_all, umag, s1 = [], [], []
+    for k in steps:
+        f = res.step(int(k))
+        u = np.asarray(f.u, float)[keep]
+        u_all.append(_rounded(u, ustep))
+        umag.append(_rounded(np.linalg.norm(u, axis=1), ustep))
+        if f.max_principal is not None:
+            sp = np.asarray(f.max_principal, float)[keep]
+            scale = float(np.nanmax(np.abs(sp))) if np.isfinite(sp).any() else 1.0
+            s1.append(_rounded(sp, max(scale * 1e-4, 1e-9)))
         else:
-            vals = np.asarray(sc[0], float)
-            fin = vals[np.isfinite(vals)]
-            lo, hi = (float(fin.min()), float(fin.max())) if fin.size else (0.0, 1.0)
-            mapper.SetLookupTable(lut(sc[2]))
-            mapper.SetScalarRange(lo, hi if hi > lo else lo + 1e-12)
-            mapper.SetUseLookupTableScalarRange(False)
-            bar = vtkScalarBarActor()
-            bar.SetLookupTable(mapper.GetLookupTable())
-            bar.SetTitle(sc[1])
-            bar.SetNumberOfLabels(4)
-            bar.SetWidth(0.12)
-            bar.SetHeight(0.6)
-            bar.SetPosition(0.86, 0.2)
-            for prop in (bar.GetTitleTextProperty(), bar.GetLabelTextProperty()):
-                prop.SetColor(0.1, 0.1, 0.1)
-            ren.AddViewProp(bar)
-        actor = vtkActor()
-        actor.SetMapper(mapper)
-        ren.AddActor(actor)
-        text = vtkTextActor()
-        text.SetInput(title)
-        text.GetTextProperty().SetColor(0.1, 0.1, 0.1)
-        text.GetTextProperty().SetFontSize(max(11, width // 110))
-        text.SetPosition(8, int(width * 0.36) - max(11, width // 110) - 12)
-        ren.AddViewProp(text)
-        cam = ren.GetActiveCamera()
-        cam.SetFocalPoint(*centre)
-        cam.SetPosition(*(centre + span * np.array([1.2, 2.4, 1.3])))
-        cam.SetViewUp(0.0, 0.0, 1.0)
-        ren.ResetCamera()
-        win.AddRenderer(ren)
-    win.Render()
-    grab = vtkWindowToImageFilter()
-    grab.SetInput(win)
-    grab.Update()
-    writer = vtkPNGWriter()
-    writer.SetFileName(str(path))
-    writer.SetInputConnection(grab.GetOutputPort())
-    writer.Write()
-    win.Finalize()
-    return path
+            s1.append(None)
+    fib = np.asarray(m.fiber, float)[keep]
+    angle = fibre_angle_deg(fib)
+    angle[np.asarray(m.tissue)[keep] != MUSCLE] = np.nan
+    names = list(m.muscle_names)
+    return {
+        "X": _rounded(np.asarray(m.X, float)[keep], ustep),
+        "u": u_all, "umag": umag, "s1": s1,
+        "tissue": tissue_class(np.asarray(m.tissue)[keep], None if imat is None else np.asarray(imat)[keep]).tolist(),
+        "tissue_classes": [{"name": n, "color": c} for n, c in TISSUE_CLASSES],
+        "muscle": np.asarray(m.muscle_id)[keep].astype(int).tolist(),
+        "muscle_names": [str(n).replace("_", " ") for n in names],
+        "fibre_angle": _rounded(angle, 0.1),
+        "steps": [int(k) for k in steps],
+        "alpha": [float(res.alpha[int(k)]) for k in steps],
+        "n_nodes": int(m.n_nodes), "n_shown": int(keep.size),
+    }
 
 
-def _render_matplotlib(m, fields, path: Path, dpi: int) -> Path:
-    import matplotlib
+def plotly_js() -> tuple[str, str]:
+    """(plotly.min.js text, plotly version) from the installed ``plotly`` package; ImportError without it."""
+    import plotly
+    from plotly.offline import get_plotlyjs
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    return get_plotlyjs(), plotly.__version__
 
-    X = np.asarray(m.X, float)
-    u = np.asarray(fields.u, float)
-    panels = [("muscles and tissues (reference)", X, category_colours(m.tissue, m.muscle_id, len(m.muscle_names)) / 255.0,
-               None), ("|u| [cm], deformed", X + u, np.linalg.norm(u, axis=1), "|u| [cm]")]
-    if fields.max_principal is not None:
-        panels.append(("max principal Cauchy stress, deformed", X + u, fields.max_principal, "N/cm²"))
-    fig = plt.figure(figsize=(13.0, 4.6), layout="constrained")
-    for i, (title, P, c, lab) in enumerate(panels):
-        ax = fig.add_subplot(1, len(panels), i + 1, projection="3d")
-        sc = ax.scatter(P[:, 0], P[:, 1], P[:, 2], c=c, s=2, depthshade=False)
-        ax.set_title(title, fontsize=9)
-        ax.set_xlabel("x [cm]")
-        ax.set_ylabel("y [cm]")
-        ax.set_zlabel("z [cm]")
-        ax.set_box_aspect(np.ptp(P, axis=0) + 1e-9)
-        if lab:
-            fig.colorbar(sc, ax=ax, label=lab, shrink=0.6)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
-    return path
+
+def write_view(res: Results, outdir: str | Path, steps: np.ndarray, *, imat: np.ndarray | None = None,
+               max_points: int = 20000) -> dict:
+    """Write the viewer's files beside the report page.
+
+    Returns
+    -------
+    dict
+        ``files`` (names of the files written in ``outdir``), ``plotly`` (version), ``n_nodes``, ``n_shown``, ``steps``; or
+        ``{"error": why}`` when plotly is not installed (nothing written).
+    """
+    outdir = Path(outdir)
+    try:
+        js, version = plotly_js()
+    except ImportError:
+        return {"error": "plotly is not installed (pip install 'pixmuscle[view]')"}
+    data = view_data(res, steps, imat=imat, max_points=max_points)
+    paths = [outdir / name for name in FILES]
+    paths[0].write_text(js, encoding="utf-8")
+    shutil.copyfile(Path(__file__).with_name("view3d.js"), paths[1])
+    # a script, not JSON: NaN is a JavaScript literal
+    paths[2].write_text("window.PIXMUSCLE_VIEW3D = " + json.dumps(data, separators=(",", ":")) + ";\n",
+                        encoding="utf-8")
+    return {"files": list(FILES), "plotly": version, "n_nodes": data["n_nodes"],
+            "n_shown": data["n_shown"], "steps": data["steps"]}

@@ -8,7 +8,8 @@ Outputs in ``outdir``:
                                       a set displaced: paper Example 1), with ``report.reference_curve`` beside it
 ``fields.pvd`` + ``fields/step_XXXX.vtu``   the model's voxel cells with the fields, for ParaView
 ``fields.xdmf`` + ``fields.h5``       the same series as XDMF + HDF5
-``view3d.png``, ``slices_*.png``, ``newton.png``   the figures of :mod:`pixmuscle.report.figures`
+``slices_*.png``, ``newton.png``   the figures of :mod:`pixmuscle.report.figures`
+``plotly.min.js``, ``view3d.js``, ``view3d_data.js``   the interactive 3-D view (:mod:`pixmuscle.report.view3d`)
 ``summary.json``                      the plot-ready summary returned by :func:`make_report`
 ``index.html``                        self-contained page with all of the above
 
@@ -45,14 +46,19 @@ FIRST_KEYS = ("title", "label", "status", "synthetic", "F_max_N", "alpha_at_F_ma
 
 
 def _versions() -> dict:
-    import h5py
+    """pixmuscle (with its git commit when run from a checkout) and the libraries the report used."""
     import matplotlib
-    import meshio
-    import scipy
 
-    return {"pixmuscle": __version__, "python": platform.python_version(), "numpy": np.__version__,
-            "scipy": scipy.__version__, "h5py": h5py.__version__, "meshio": meshio.__version__,
-            "matplotlib": matplotlib.__version__}
+    from ..store import library_versions, source_commit
+
+    git = source_commit()
+    out = {"pixmuscle": __version__}
+    if git is not None:
+        out["pixmuscle git commit"] = git["commit"] + (" (with local changes)" if git["modified"] else "")
+    out.update(library_versions())
+    out["python"] = platform.python_version()
+    out["matplotlib"] = matplotlib.__version__
+    return out
 
 
 def default_report_dir(results_path: str | Path) -> Path:
@@ -107,7 +113,6 @@ def _write_report(res, results_path: Path, outdir: Path, final: Path, cfg: Repor
         plane_indices(res.model.ijk, res.model.origin, res.model.spacing, cfg.slice_position)  # validates
     out = summary["outputs"]
     summary["results_sha256"] = sha256_file(results_path)
-    summary["versions"] = _versions()
 
     header, rows = force_table(res.alpha, res.load_factor, res.converged, res.iterations, res.reaction,
                                  summary["force_sets"])
@@ -133,6 +138,15 @@ def _write_report(res, results_path: Path, outdir: Path, final: Path, cfg: Repor
     figures = make_figures(Context(res=res, summary=summary, cfg=cfg, outdir=outdir, warnings=warnings, extra=extra))
     for key, (_, p) in figures.items():
         out[f"{key}_png"] = str(p)
+    if cfg.view3d and summary["field_step"] is not None:
+        from ..report.view3d import write_view
+
+        steps = np.flatnonzero(np.asarray(res.converged, bool))
+        summary["view3d"] = write_view(res, outdir, steps, imat=tissue.get("imat_mask"), max_points=cfg.view3d_max_points)
+        out["view3d"] = [str(outdir / name) for name in summary["view3d"].get("files", [])]
+        if "error" in summary["view3d"]:
+            warnings.append(f"no interactive 3-D view: {summary['view3d']['error']}")
+    summary["versions"] = _versions()
     if summary["field_step"] is not None:
         m = res.model
         from ..report.slices import plane_indices

@@ -177,6 +177,7 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
                 save_results(out_path, partial, config=cfg, inputs=inputs,
                              attrs=stage_attrs("solve", inputs, warnings, synthetic=synthetic))
                 _LOG.error("solve failed; converged steps written to %s (status: %s)", out_path, partial.status)
+                exc.results_path = str(out_path)  # the CLI prints it
             if keep is not None:  # the same command would fail the same way: nothing to resume
                 keep.remove()
             raise
