@@ -34,6 +34,7 @@ from . import newton as _newton
 from .assembly import Assembler, support_pattern
 from .boundary import SIGN_CONVENTION, Constraints, build_constraints, penalty_number
 from .config import SolveConfig, SupportConfig
+from .ellipticity import acoustic_minimum, directions
 from .linsolve import make_solver
 from .materials import LAWS, needs
 from .results import Results, cauchy_voigt, max_principal
@@ -464,6 +465,20 @@ def constraint_gap(steps: list[dict], h_min: float) -> dict[str, dict]:
     return out
 
 
+def ellipticity_warning(system: MechanicalSystem, state: State) -> tuple[int, str]:
+    """Nodes where the material law is not strongly elliptic at ``state`` and a one-line warning.
+
+    Returns (count, message); the message names the count, the smallest acoustic-tensor eigenvalue
+    (:func:`.ellipticity.acoustic_minimum`, 300 directions) and what it means for the results.
+    """
+    _, A = system.material_response(state.F, state.alpha)
+    q = acoustic_minimum(state.F, A, directions(300))
+    bad = int(np.count_nonzero(q < 0.0))
+    return bad, (f"the material law is not strongly elliptic at {bad} of {q.size} nodes at the last converged step "
+                 f"(smallest acoustic-tensor eigenvalue {q.min():.3g} N/cm²): deformation can localise there and "
+                 f"forces and fields depend on the resolution (docs/active-muscle.md)")
+
+
 def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activation=None, *,
           resume: list | None = None, on_checkpoint=None) -> Results:
     """Solve the finite-strain equilibrium of a pixel-point model over the load steps.
@@ -517,6 +532,7 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
     if "engine" in linsolver.info:
         info["linear_engine"] = linsolver.info["engine"]
     steps: list = []
+    last_state: list = []
     lin_time = {"setup_s": 0.0, "solve_s": 0.0, "iterations": []}
 
     class _Timed:
@@ -538,6 +554,7 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
 
     def on_step(rec, replay=False):
         st = rec.state
+        last_state[:] = [st]
         steps.append(dict(
             alpha=rec.alpha if activation is None else activation.mean(rec.alpha), t=rec.t, iterations=rec.iterations, cutbacks=rec.cutbacks, d=st.d.copy(),
             u=np.asarray(psi_nodes @ st.d), reaction=system.constraints.reactions(st.d, rec.t),
@@ -592,9 +609,16 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
     for (reach, _), (asm, _) in system._assemblers.items():
         key = "nnz_per_row" if reach is None else "preconditioner_nnz_per_row"
         info[key] = round(asm.nnz / (3 * model.n_nodes), 1)
+    warnings = []
+    if last_state:
+        msg = ellipticity_warning(system, last_state[0])
+        info["non_elliptic_nodes"] = int(msg[0])
+        if msg[0]:
+            _LOG.warning(msg[1])
+            warnings.append(msg[1])
     results = Results.from_steps(model, steps, failed_rows=failed_rows, status=status, n_steps=cfg.steps,
                                  constrained=system.constraints.constrained_components(), info=info,
-                                 sign_convention=SIGN_CONVENTION, constraint_gap=gaps)
+                                 sign_convention=SIGN_CONVENTION, constraint_gap=gaps, warnings=warnings)
     if error is not None:
         error.results = results
         raise error
