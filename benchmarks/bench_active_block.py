@@ -174,23 +174,18 @@ def check_law(n=200, seed=0) -> dict:
                                             float(np.linalg.svd(F, compute_uv=False).max())]}
 
 
-_DIRS = None
-
-
-def acoustic_minimum(F, A):
+def acoustic_minimum(F, A, n_dirs=2000):
     """Smallest eigenvalue of the isochoric acoustic tensor over wave directions (n,) [N/cm²].
 
     Q_ik(m) = A_iJkL m_J m_L on the two polarisations a ⊥ F⁻ᵀm (the third, volumetric one, is
     stiffened by K); the law is strongly elliptic at F where this is > 0 for every m. m runs over
-    2000 quasi-uniform unit vectors (a Fibonacci sphere).
+    ``n_dirs`` quasi-uniform unit vectors (a Fibonacci sphere); each point's 2 × 2 blocks by numpy's
+    eigvalsh.
     """
-    global _DIRS
-    if _DIRS is None:
-        k = np.arange(2000) + 0.5
-        phi, z = np.pi * (1 + 5**0.5) * k, 1 - 2 * k / 2000
-        r = np.sqrt(1 - z * z)
-        _DIRS = np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
-    m = _DIRS
+    k = np.arange(n_dirs) + 0.5
+    phi, z = np.pi * (1 + 5**0.5) * k, 1 - 2 * k / n_dirs
+    r = np.sqrt(1 - z * z)
+    m = np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
     out = np.empty(len(F))
     for e in range(len(F)):
         Q = np.einsum("iJkL,mJ,mL->mik", A[e], m, m)
@@ -307,7 +302,7 @@ def fe_diagnostics(field, umat, alpha, path, matrix) -> dict:
     sv = np.linalg.svd(Fp, compute_uv=False)
     qmin = np.empty(len(Fp))
     for s in range(0, len(Fp), 4096):
-        qmin[s:s + 4096] = acoustic_minimum(Fp[s:s + 4096], law_stress_tangent(Fp[s:s + 4096], alpha, **(matrix or {}))[1])
+        qmin[s:s + 4096] = acoustic_minimum(Fp[s:s + 4096], law_stress_tangent(Fp[s:s + 4096], alpha, **(matrix or {}))[1], 400)
     bad = qmin < 0
     if path is not None:
         pts = field.region.mesh.points
@@ -437,7 +432,8 @@ def figure(record: dict, fields: list[pathlib.Path], path: pathlib.Path) -> None
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 1 + len(fields), figsize=(4.2 * (1 + len(fields)), 4.6), squeeze=False)
+    fig, axes = plt.subplots(1, 2 + len(fields), figsize=(4.0 * (2 + len(fields)), 4.6), squeeze=False,
+                             gridspec_kw={"width_ratios": [1.4, 1.0] + [0.8] * len(fields)})
     ax = axes[0, 0]
     for c in record.get("cases", []):
         style = "--" if "C01=0" in c["case"] else "-"
@@ -447,13 +443,27 @@ def figure(record: dict, fields: list[pathlib.Path], path: pathlib.Path) -> None
     ax.set_ylabel("F_z at z = 6 (N)")
     ax.set_title("reaction; dashed: C10 = 2.63, C01 = 0")
     ax.legend(fontsize=5.5)
-    for ax, f in zip(axes[0, 1:], fields):
+    ax = axes[0, 1]
+    for c in record.get("cases", []):
+        if "non_elliptic_fraction_per_step" in c:
+            ax.plot(c["alpha"][1:], 100 * np.asarray(c["non_elliptic_fraction_per_step"]), "--" if "C01=0" in c["case"] else "-",
+                    marker=".", label=c["case"])
+    ax.set_xlabel("activation α")
+    ax.set_ylabel("volume where the law is not strongly elliptic (%)")
+    ax.legend(fontsize=6)
+    for ax, f in zip(axes[0, 2:], fields):
         d = np.load(f)
         xq = d["xq"]
         near = xq[:, 1] <= np.quantile(xq[:, 1], 0.12)            # the quadrature layer next to y = 0
-        sc = ax.scatter(xq[near, 0], xq[near, 2], c=d["stretch_max"][near], s=4, cmap="viridis", vmin=1.0, vmax=2.0)
+        size = 900.0 / max(1, near.sum()) ** 0.5
+        sc = ax.scatter(xq[near, 0], xq[near, 2], c=d["stretch_max"][near], s=size, marker="s", cmap="viridis", vmin=1.0, vmax=2.0)
         bad = near & (d["qmin"] < 0)
-        ax.scatter(xq[bad, 0], xq[bad, 2], s=6, facecolors="none", edgecolors="r", linewidths=0.4)
+        ax.scatter(xq[bad, 0], xq[bad, 2], s=0.25 * size, c="r", marker=".", linewidths=0)
+        t = np.linspace(0, 6, 7)
+        for x0 in (-2.0, 0.0, 2.0):                                # a few fibre lines (undeformed)
+            ax.plot(x0 + t * np.tan(ANGLE), t, color="w", lw=0.5, alpha=0.7)
+        ax.set_xlim(0, SIZE[0])
+        ax.set_ylim(0, SIZE[2])
         ax.set_aspect("equal")
         ax.set_xlabel("x (cm)")
         ax.set_ylabel("z (cm)")
@@ -491,7 +501,7 @@ def main(argv=None):
             if kind == "pixmuscle":
                 row = run_pixmuscle(arg, opts)
             else:
-                fpath = OUT / f"{STEM}_fields_{spec.replace(':', '_')}.npz" if spec in args.fields else None
+                fpath = OUT / f"{STEM}_fields_{''.join(ch if ch.isalnum() else '_' for ch in spec)}.npz" if spec in args.fields else None
                 row = run_fe(kind, arg, fpath, opts)
                 row["case"] = spec
             cases[row["case"]] = row
