@@ -392,7 +392,9 @@ def write(record: dict) -> None:
     cases = record.get("cases", [])
     lines = ["# Active clamped oblique-fibre block: pixmuscle against mixed finite elements", "",
              "2 × 1.5 × 6 cm muscle block (paper eqs. 22–26, ERRATA), fibres in x–z at 25° to z, both ends clamped, "
-             "α 0 → 0.95 in 10 steps. F_z, F_x: reaction at z = 6 (N, positive F_z = the block pulls on the support).", ""]
+             "α 0 → 0.95 in 10 steps. F_z, F_x: reaction at z = 6 (N, positive F_z = the block pulls on the support). "
+             "The record is of forces; wall times were measured on a shared machine under the load averages below "
+             "and are upper bounds, not timings.", ""]
     for run in record.get("runs", []):
         lines.append(f"- `{run['command']}` — {run['date']}, load average {run['load_average']}")
     lines.append("")
