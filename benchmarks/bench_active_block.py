@@ -106,7 +106,7 @@ def fiber_energy(lam, alpha):
     lo, hi = np.minimum(s, 1.0), np.maximum(s, 1.0)
     sign = np.where(s < 1.0, -1.0, 1.0)
     edges = np.sort(np.concatenate([knots, [0.0, 10.0]]))
-    for a, b in zip(edges[:-1], edges[1:]):
+    for a, b in zip(edges[:-1], edges[1:], strict=True):
         a_, b_ = np.clip(lo, a, b), np.clip(hi, a, b)
         mid, half = 0.5 * (a_ + b_), 0.5 * (b_ - a_)
         t = mid[..., None] + half[..., None] * x
@@ -264,7 +264,7 @@ def run_fe(family: str, n: tuple[int, int, int], fields_out: pathlib.Path | None
             except Exception:                                   # no convergence or an inverted element
                 ok = False
             if not ok:
-                for f, v in zip(field.fields, saved):
+                for f, v in zip(field.fields, saved, strict=True):
                     f.values[:] = v
                 da /= 2
                 out["halvings"] += 1
@@ -453,7 +453,7 @@ def figure(record: dict, fields: list[pathlib.Path], path: pathlib.Path) -> None
     ax.set_xlabel("activation α")
     ax.set_ylabel("volume where the law is not strongly elliptic (%)")
     ax.legend(fontsize=6)
-    for ax, f in zip(axes[0, 2:], fields):
+    for ax, f in zip(axes[0, 2:], fields, strict=True):
         d = np.load(f)
         xq = d["xq"]
         near = xq[:, 1] <= np.quantile(xq[:, 1], 0.12)            # the quadrature layer next to y = 0
