@@ -476,7 +476,7 @@ def ellipticity_warning(system: MechanicalSystem, state: State) -> tuple[int, st
     bad = int(np.count_nonzero(q < 0.0))
     return bad, (f"the material law is not strongly elliptic at {bad} of {q.size} nodes at the last converged step "
                  f"(smallest acoustic-tensor eigenvalue {q.min():.3g} N/cm²): deformation can localise there and "
-                 f"forces and fields depend on the resolution (docs/active-muscle.md)")
+                 f"forces and fields depend on the resolution (pixmuscle.mechanics.ellipticity)")
 
 
 def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activation=None, *,
