@@ -45,6 +45,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...errors import SolverError
+from ..tangent import MatrixFreeTangent
 from .base import register
 from .cg_amg import KrylovAMGSolver
 from .fgmres import fgmres
@@ -149,8 +150,6 @@ class MixedBlockSolver(KrylovAMGSolver):
             self._mu_node = (A0[:, 0, 1, 0, 1] + A0[:, 0, 2, 0, 2] + A0[:, 1, 2, 1, 2]) / 3.0  # shear moduli, N/cm²
         press = np.flatnonzero(~vol.held)
         full = self._A
-        from ..tangent import MatrixFreeTangent
-
         Kd = MatrixFreeTangent(full.main, full.C, stab=full.stab, penalty=full.penalty,
                                volumetric=(vol.restricted(vol.held), state.vol))
         Q = vol.Q[press]
