@@ -331,7 +331,9 @@ def infsup(size: str, penalty: float | None, patch=(1, 1, 3), held: str = "press
     import scipy.linalg as sl
     import scipy.sparse as sp
 
+    from pixmuscle.mechanics.linsolve.mixed import PatchDivergence
     from pixmuscle.mechanics.solve import build_system
+    from pixmuscle.mechanics.volumetric import shear_moduli
 
     model, cfg = leg_case(size, penalty, volumetric={"method": "projected", "patch": list(patch)})
     system, _ = build_system(model, cfg)
@@ -345,13 +347,10 @@ def infsup(size: str, penalty: float | None, patch=(1, 1, 3), held: str = "press
         Kd = asm.matrix(data).tocsr()
     else:
         Kd = system.stiffness(state, pressure_free=True).tocsr()
-    B, a = system.tangent_operator(state).main.B, state.vol.a
+    main = system.tangent_operator(state).main
     Q = vol.Q[np.flatnonzero(press)]
-    G = sp.hstack([Q @ sum(sp.diags(a[:, i, J]) @ B[J * n:(J + 1) * n] for J in range(3)) for i in range(3)]).tocsr()
-    G = G[:, np.arange(3 * n).reshape(3, n).T.ravel()]  # columns i·N + m → node-major 3m + i
-    A0 = system.A0
-    mu = (A0[:, 0, 1, 0, 1] + A0[:, 0, 2, 0, 2] + A0[:, 1, 2, 1, 2]) / 3.0  # shear moduli, N/cm²
-    mass = 1.0 / ((Q @ mu) * vol.vp[press])
+    G = PatchDivergence(main.B, main.BT, state.vol.a, Q).sparse()
+    mass = 1.0 / ((Q @ shear_moduli(system.A0)) * vol.vp[press])
     out = {"size": size, "nodes": n, "patch": list(patch), "held_single_patches_in": held,
            "patches": vol.n_patches, "pressure_unknowns": int(press.sum()),
            "held_single_patches": int(vol.held.sum())}

@@ -53,6 +53,7 @@ def test_patch_divergence_is_the_derivative_of_the_patch_dilatation():
     assert np.allclose(G @ x.ravel(), fd, rtol=0, atol=1e-7 * np.abs(fd).max())
     q = rng.standard_normal(vol.n_patches)
     assert np.isclose(q @ (G @ x.ravel()), G.T(q) @ x.ravel(), rtol=1e-12)
+    assert np.allclose(G.sparse() @ x.ravel(), G @ x.ravel(), rtol=0, atol=1e-12 * np.abs(fd).max())
 
 
 def test_fgmres_solves_a_nonsymmetric_system_with_a_changing_preconditioner():

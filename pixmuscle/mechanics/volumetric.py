@@ -48,6 +48,15 @@ import numpy as np
 import scipy.sparse as sp
 
 
+def shear_moduli(A0: np.ndarray) -> np.ndarray:
+    """Small-strain shear modulus μ of each node from its reference tangent A(F = I), (N,) N/cm².
+
+    The mean of the three shear entries A_iJiJ (i ≠ J) of A0 (N, 3, 3, 3, 3): the scale of the
+    pressure mass diag(1/(μ_p V_p)) that measures the patch pressures' inf-sup stability.
+    """
+    return (A0[:, 0, 1, 0, 1] + A0[:, 0, 2, 0, 2] + A0[:, 1, 2, 1, 2]) / 3.0
+
+
 @dataclasses.dataclass
 class VolumetricState:
     """Patch quantities at one deformation.

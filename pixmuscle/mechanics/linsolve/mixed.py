@@ -46,6 +46,7 @@ import scipy.sparse as sp
 
 from ...errors import SolverError
 from ..tangent import MatrixFreeTangent
+from ..volumetric import shear_moduli
 from .base import register
 from .cg_amg import KrylovAMGSolver
 from .fgmres import fgmres
@@ -76,6 +77,12 @@ class PatchDivergence:
     def __matmul__(self, x: np.ndarray) -> np.ndarray:
         g = (self.B @ np.asarray(x).reshape(-1, 3)).reshape(3, self.n, 3)  # [J, L, i] = ∂x_i/∂X_J
         return self.Q @ np.einsum("jli,jli->l", self.aT, g)
+
+    def sparse(self) -> sp.csr_matrix:
+        """G assembled (N_p' × 3N, columns node-major 3m + i), 1/cm."""
+        n = self.n
+        rows = [self.Q @ sum(sp.diags(self.aT[J, :, i]) @ self.B[J * n:(J + 1) * n] for J in range(3)) for i in range(3)]
+        return sp.hstack(rows).tocsr()[:, np.arange(3 * n).reshape(3, n).T.ravel()]
 
     def T(self, q: np.ndarray) -> np.ndarray:
         """Gᵀ q, (3N,)."""
@@ -146,8 +153,7 @@ class MixedBlockSolver(KrylovAMGSolver):
         if vol is None:
             return
         if self._mu_node is None:
-            A0 = system.A0
-            self._mu_node = (A0[:, 0, 1, 0, 1] + A0[:, 0, 2, 0, 2] + A0[:, 1, 2, 1, 2]) / 3.0  # shear moduli, N/cm²
+            self._mu_node = shear_moduli(system.A0)
         press = np.flatnonzero(~vol.held)
         full = self._A
         Kd = MatrixFreeTangent(full.main, full.C, stab=full.stab, penalty=full.penalty,
