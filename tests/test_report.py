@@ -477,3 +477,97 @@ def test_wide_tables_scroll_within_the_page(done, tmp_path):
     _, _, out = done
     scroll, inner = _page_width(out / "index.html", 900)
     assert scroll <= inner
+
+
+# ------------------------------------------------------------------ figures of docs/examples.md (Example 2)
+def test_region_edges_outline_a_block_and_a_hole():
+    """A 3 × 2 block inside a 5 × 6 image: 2 (3 + 2) = 10 unit edges around it, at the pixel borders; a
+    region touching the image border is closed by the border."""
+    from pixmuscle.report.slices import region_edges
+
+    lab = np.zeros((5, 6), int)
+    lab[1:3, 2:5] = 7                      # rows 1-2, columns 2-4
+    seg = region_edges(lab, x0=10.0, y0=-1.0, dh=0.5, dv=2.0)
+    assert seg.shape == (10, 2, 2)
+    xs, ys = seg[..., 0], seg[..., 1]
+    assert set(np.round(xs.ravel(), 9)) == {11.0, 11.5, 12.0, 12.5}   # x0 + 2 dh .. x0 + 5 dh
+    assert set(np.round(ys.ravel(), 9)) == {1.0, 3.0, 5.0}            # y0 + 1 dv .. y0 + 3 dv
+    assert np.allclose(np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)[(xs[:, 0] == xs[:, 1])], 2.0)
+    full = region_edges(np.ones((2, 3), int), 0.0, 0.0, 1.0, 1.0)
+    assert full.shape == (2 * (2 + 3), 2, 2)   # the border of a full image
+
+
+def test_plane_points_lie_in_node_cells_on_the_plane(tmp_path):
+    from fixtures_results import phantom_model
+
+    from pixmuscle.report.slices import plane_points
+
+    m, _ = phantom_model()
+    ijk = np.asarray(m.ijk, np.int64)
+    pts = plane_points(ijk, m.origin, m.spacing, 1, 10, 0, 2, step_cm=1.0)   # coronal plane j = 10
+    assert pts.shape[0] > 10
+    assert np.allclose(pts[:, 1], m.origin[1] + 10 * m.spacing[1])
+    cell = np.rint((pts - m.origin) / m.spacing).astype(np.int64)
+    assert {tuple(c) for c in cell} <= {tuple(c) for c in ijk}
+    gaps = np.diff(np.unique(np.round(pts[:, 0], 9)))
+    assert np.allclose(gaps % 1.0, 0.0) or np.allclose(gaps, 1.0)   # a 1-cm grid along x
+
+
+@pytest.fixture(scope="module")
+def example2(tmp_path_factory):
+    """fig_examples.py run on an Example 2-like folder: a coarse and a fine fixture model, the coarse
+    model's RK coefficients replaced by a linear field d_J = A X_J + b (reproduced exactly by the RK
+    approximation with a linear basis, whatever the supports)."""
+    import importlib.util
+    from pathlib import Path
+
+    d = tmp_path_factory.mktemp("example2")
+    coarse = write_results_fixture(d / "results_coarse.h5", n_steps=3)
+    write_results_fixture(d / "results_fine.h5", n_steps=3, force_scale=66.0)
+    A = np.array([[0.01, -0.02, 0.0], [0.03, 0.01, 0.005], [0.0, 0.02, -0.04]])
+    b = np.array([0.1, -0.05, 0.02])
+    with h5py.File(coarse.path, "r+") as f:
+        X = f["nodes/X"][()]
+        f["steps/d"][3] = X @ A.T + b
+    spec = importlib.util.spec_from_file_location("fig_examples", Path(__file__).parents[1] / "benchmarks" / "fig_examples.py")
+    fe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(fe)
+    assert fe.main(["lower_leg_small", "--run-dir", str(d), "--out-dir", str(d / "figs")]) == 0
+    return fe, d, A, b
+
+
+def test_example2_figures_are_written(example2):
+    fe, d, _, _ = example2
+    for name in ("force_activation", "displacement", "stress"):
+        assert (d / "figs" / f"example2_small_{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    curves = fe.model_curves(d)
+    assert [c["name"] for c in curves] == ["coarse", "fine"]
+    assert np.nanmax(curves[0]["force_N"]) == pytest.approx(68.76) and np.nanmax(curves[1]["force_N"]) == pytest.approx(66.0)
+
+
+def test_example2_arrows_are_the_rk_field(example2, tmp_path):
+    """The arrows are u(x) = Σ Ψ_J(x) d_J at points between the nodes: equal to the linear field A x + b."""
+    fe, d, A, b = example2
+    res = load_results(d / "results_coarse.h5")
+    out = fe.plot_displacement_planes(res, 3, tmp_path / "u.png", title="t", step_cm=0.6)
+    for name in ("transverse", "coronal", "sagittal"):
+        p, u = out[name]["points"], out[name]["u"]
+        assert p.shape[0] > 5 and out[name]["n_fallback"] == 0
+        nodes = {tuple(x) for x in np.round(res.model.X, 6)}
+        assert any(tuple(q) not in nodes for q in np.round(p, 6))  # points between the nodes, too
+        np.testing.assert_allclose(u, p @ A.T + b, atol=1e-9)
+
+
+def test_example2_stress_planes_hold_the_nodal_stress(example2, tmp_path):
+    fe, d, _, _ = example2
+    res = load_results(d / "results_coarse.h5")
+    out = fe.plot_stress_planes(res, 3, tmp_path / "s.png", title="t")
+    mp = np.asarray(res.max_principal[3])
+    k = fe.planes(res.model)[0][4]
+    on = mp[np.asarray(res.model.ijk)[:, 2] == k]
+    img = out["transverse"]
+    assert np.isfinite(img).sum() == on.size and np.allclose(np.sort(img[np.isfinite(img)]), np.sort(on))
+    ijk = np.asarray(res.model.ijk)
+    every = np.concatenate([mp[ijk[:, n] == i] for _, n, _, _, i in fe.planes(res.model)])
+    assert out["min"] == every.min() and out["max"] == every.max()
+    assert (out["vmin"], out["vmax"]) == tuple(np.percentile(every, [0.5, 99.5]))   # the shared colour range

@@ -71,6 +71,89 @@ def plane_image(ijk: np.ndarray, values: np.ndarray, axis: int, index: int, haxi
     return img, lo
 
 
+def region_edges(labels: np.ndarray, x0: float, y0: float, dh: float, dv: float) -> np.ndarray:
+    """Pixel edges between differently labelled pixels of an image: outlines of its regions.
+
+    Parameters
+    ----------
+    labels : (nv, nh) int
+        Region label of each pixel (e.g. muscle id, tissue code; 0 for no node). Pixels outside
+        the image count as 0, so regions touching the border are closed.
+    x0, y0 : float, cm
+        Lower-left corner of pixel [0, 0] (row index along the vertical axis).
+    dh, dv : float, cm
+        Pixel size along the horizontal and vertical axes.
+
+    Returns
+    -------
+    (K, 2, 2) float64, cm
+        Segments ``[[x_a, y_a], [x_b, y_b]]``, one per unit pixel edge between two different labels
+        (for a ``matplotlib.collections.LineCollection``).
+    """
+    lab = np.pad(np.asarray(labels), 1)  # (nv + 2, nh + 2), 0 around
+    # vertical edges: pixel (i, j) and its right neighbour differ; padded index j is the edge's left pixel
+    i, j = np.nonzero(lab[1:-1, :-1] != lab[1:-1, 1:])
+    x = x0 + j * dh
+    vert = np.stack([np.stack([x, y0 + i * dv], -1), np.stack([x, y0 + (i + 1) * dv], -1)], axis=1)
+    # horizontal edges: pixel (i, j) and the one above differ
+    i, j = np.nonzero(lab[:-1, 1:-1] != lab[1:, 1:-1])
+    y = y0 + i * dv
+    horiz = np.stack([np.stack([x0 + j * dh, y], -1), np.stack([x0 + (j + 1) * dh, y], -1)], axis=1)
+    return np.concatenate([vert, horiz]).astype(np.float64)
+
+
+def plane_points(ijk: np.ndarray, origin, spacing, axis: int, index: int, haxis: int, vaxis: int,
+                 step_cm: float) -> np.ndarray:
+    """Points of a regular grid on one grid plane, kept where they fall in a node's cell.
+
+    The grid has spacing ``step_cm`` along both in-plane axes (at least one cell), centred on the
+    middle of the nodes' extent on the plane, so arrows drawn at these points are evenly spaced
+    in cm whatever the cell size (e.g. 0.156 cm in-plane, 0.5 cm between slices).
+
+    Parameters
+    ----------
+    ijk : (N, 3) int; origin, spacing : (3,) cm
+    axis, index : int
+        Plane normal axis and its grid index.
+    haxis, vaxis : int
+        In-plane axes.
+    step_cm : float
+        Grid spacing, cm.
+
+    Returns
+    -------
+    (P, 3) float64, cm
+        Model-frame coordinates, on the plane (coordinate ``origin[axis] + index * spacing[axis]``).
+    """
+    ijk = np.asarray(ijk, np.int64)
+    origin, spacing = np.asarray(origin, float), np.asarray(spacing, float)
+    on = ijk[ijk[:, axis] == index]
+    if on.shape[0] == 0:
+        return np.zeros((0, 3))
+    axes = (haxis, vaxis)
+    lo, hi = on[:, axes].min(axis=0), on[:, axes].max(axis=0)
+    coords = []
+    for k, a in enumerate(axes):  # two in-plane axes
+        c = origin[a] + 0.5 * (lo[k] + hi[k]) * spacing[a]
+        half = 0.5 * (hi[k] - lo[k] + 1) * spacing[a]
+        step = max(float(step_cm), float(spacing[a]))
+        n = int(np.floor(half / step))
+        coords.append(c + step * np.arange(-n, n + 1))
+    gh, gv = np.meshgrid(*coords, indexing="ij")
+    pts = np.empty((gh.size, 3))
+    pts[:, axis] = origin[axis] + index * spacing[axis]
+    pts[:, haxis], pts[:, vaxis] = gh.ravel(), gv.ravel()
+    # keep the points whose cell (nearest voxel) holds a node of the plane
+    cell = np.rint((pts[:, axes] - origin[list(axes)]) / spacing[list(axes)]).astype(np.int64)
+    dims = hi - lo + 1
+    inside = ((cell >= lo) & (cell <= hi)).all(axis=1)
+    occupied = np.zeros(int(np.prod(dims)), bool)
+    occupied[np.ravel_multi_index(tuple((on[:, axes] - lo).T), tuple(dims))] = True
+    keep = np.zeros(pts.shape[0], bool)
+    keep[inside] = occupied[np.ravel_multi_index(tuple((cell[inside] - lo).T), tuple(dims))]
+    return pts[keep]
+
+
 def _samples(n: int, step: int) -> np.ndarray:
     """Indices 0..n-1 every ``step``, placed symmetrically about the middle (so a thin body gets its centre line)."""
     c = (n - 1) // 2
