@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.pixmuscle-installed
 DEMO_STAMP := $(VENV)/.pixmuscle-demo
 
-.PHONY: venv demo test bench bench-scale lint clean
+.PHONY: venv demo test bench bench-scale examples examples-small lint clean
 
 # `make demo` installs what the demo needs (pixmuscle and the interactive 3-D view: about a minute on a
 # fresh machine); `make test` adds everything the tests use: the test and dev tools, MKL PARDISO, dipy,
@@ -49,6 +49,22 @@ bench-scale: $(STAMP)
 	$(BIN)/python benchmarks/bench_solve.py --infsup 10k --patch 2,2,3 --held displacement --thresholds 0.01 0.05
 	$(BIN)/python benchmarks/bench_patch.py
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 75k:cg_amg
+
+# the paper's Examples 3 and 2 at the paper's resolution, each timed stage by stage (wall time, peak memory,
+# load average; per model nodes, Newton iterations, F_max: benchmarks/results/bench_examples.json) and the
+# figures of docs/examples.md drawn from its results; hours on 2 cores (Example 2: coarse and fine model).
+# A run made by hand is recorded with `benchmarks/bench_examples.py EXAMPLE --from-run DIR` (no solve).
+examples: $(STAMP)
+	$(BIN)/python benchmarks/bench_examples.py mg_young_old
+	$(BIN)/python benchmarks/fig_examples.py mg_young_old
+	$(BIN)/python benchmarks/bench_examples.py lower_leg
+	$(BIN)/python benchmarks/fig_examples.py lower_leg
+
+# the same for the small variants (minutes); their Example 2 figures go to out/lower_leg_small/figures
+examples-small: $(STAMP)
+	$(BIN)/python benchmarks/bench_examples.py mg_young_old_small
+	$(BIN)/python benchmarks/bench_examples.py lower_leg_small
+	$(BIN)/python benchmarks/fig_examples.py lower_leg_small --out-dir out/lower_leg_small/figures
 
 lint: $(STAMP)
 	$(BIN)/ruff check pixmuscle tests benchmarks
