@@ -79,9 +79,13 @@ def _models(out: Path) -> dict:
     return found
 
 
-def _outcome(out: Path) -> dict:
+def _outcome(out: Path, since: float = 0.0) -> dict:
+    """F_max, nodes, Table 3 volumes and the coarse vs fine difference of every report summary under
+    ``out`` written after ``since`` (epoch s)."""
     res = {}
     for js in sorted(out.rglob("report/summary.json")):
+        if js.stat().st_mtime < since:
+            continue
         s = json.loads(js.read_text())
         entry = {"F_max_N": s.get("F_max_N"), "n_nodes": s.get("n_nodes"), "compared": s.get("compared")}
         if s.get("convergence"):
@@ -93,8 +97,8 @@ def _outcome(out: Path) -> dict:
     return res
 
 
-def _model_records(out: Path) -> dict:
-    """Per solved model under ``out`` (key: ``<model>`` or ``<subject>/<model>``): nodes, load steps
+def _model_records(out: Path, since: float = 0.0) -> dict:
+    """Per model solved under ``out`` after ``since`` (epoch s; key: ``<model>`` or ``<subject>/<model>``): nodes, load steps
     converged / planned, Newton iterations, F_max (N, as the report computes it), the solver's own
     clock (``solver_info.total_s``), linear solver and Krylov iterations, status."""
     from pixmuscle.io.results import load_results
@@ -102,6 +106,8 @@ def _model_records(out: Path) -> dict:
 
     found = {}
     for p in sorted(out.rglob("results_*.h5")):  # one file per model and subject
+        if p.stat().st_mtime < since:
+            continue  # left by an earlier run
         res = load_results(p)
         sets = select_force_sets(res.reaction, None, res.constrained_text())
         force = end_force(axial_forces(res.reaction, sets), res.n_states)
@@ -143,6 +149,7 @@ def run(example: str, until: str | None) -> dict:
            f"{os.cpu_count()} cores (shared)", "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
            "command": f"python benchmarks/bench_examples.py {example}" + (f" --until {until}" if until else ""),
            "stages": []}
+    t_start = time.time()
     for label, args in steps:
         load0 = os.getloadavg()[0]
         wall, code, err, peak = _cli(config, *args)
@@ -154,8 +161,8 @@ def run(example: str, until: str | None) -> dict:
     rec["wall_s"] = round(sum(s["wall_s"] for s in rec["stages"]), 1)
     rec["peak_rss_GB"] = max(s["peak_rss_GB"] for s in rec["stages"])
     rec["models_nodes"] = _models(out)
-    rec["models"] = _model_records(out)
-    rec["reports"] = _outcome(out)
+    rec["models"] = _model_records(out, since=t_start)
+    rec["reports"] = _outcome(out, since=t_start)
     rec["status"] = _status(rec)
     return rec
 
