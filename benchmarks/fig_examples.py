@@ -309,6 +309,7 @@ def _figure(model, plane_list):
     fig_h = min(8.0, max(3.0, 0.8 * 3 * PANEL_W * max(heights) / sum(widths) + 1.5))
     fig, axes = plt.subplots(1, 3, figsize=(3 * PANEL_W, fig_h), layout="constrained",
                              gridspec_kw={"width_ratios": widths})
+    fig.get_layout_engine().set(w_pad=0.12, wspace=0.04)  # room for the y labels beside equal-aspect panels
     return plt, fig, axes, panels
 
 
@@ -453,9 +454,9 @@ def example2_figures(run_dir: Path, out_dir: Path, prefix: str, label: str) -> l
     state = (f"{curves[0]['name']} model ({res.model.n_nodes:,} nodes), step {step}, α = {res.alpha[step]:.3g}, "
              "reference configuration")
     disp = plot_displacement_planes(res, step, out_dir / f"{prefix}_displacement.png",
-                                    title=f"{label}: in-plane displacement, {state} (paper Figure 12)")
+                                    title=f"{label}: in-plane displacement (paper Figure 12)\n{state}")
     stress = plot_stress_planes(res, step, out_dir / f"{prefix}_stress.png",
-                                title=f"{label}: largest principal Cauchy stress, {state} (paper Figure 13)")
+                                title=f"{label}: largest principal Cauchy stress (paper Figure 13)\n{state}")
     for c in curves:
         print(f"{c['name']}: {c['n_nodes']:,} nodes, F_max {np.nanmax(c['force_N']):.4g} N, status {c['status']}")
     print(f"arrows: largest |u| {disp['u_max_cm']:.3g} cm, grid {disp['step_cm']:.3g} cm, "
