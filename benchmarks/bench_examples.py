@@ -186,7 +186,7 @@ def from_run(example: str, run_dir: Path, wall_s: float | None, peak_gb: float |
         started, argv = info.get("started_utc"), info.get("argv")
     files = [p for p in run_dir.rglob("*") if p.is_file() and p.name != lock.name]
     end = max(p.stat().st_mtime for p in files) if files else None
-    wall_source = "given (--wall-s)"
+    wall_source = "given (--wall-s)" if wall_s is not None else "not measured (no lock file in the folder)"
     if wall_s is None and started is not None and end is not None:
         wall_s = end - dt.datetime.fromisoformat(started).timestamp()
         wall_source = ("from the run folder: started_utc of its lock file (the last `pixmuscle run` in it) to the "

@@ -571,3 +571,36 @@ def test_example2_stress_planes_hold_the_nodal_stress(example2, tmp_path):
     every = np.concatenate([mp[ijk[:, n] == i] for _, n, _, _, i in fe.planes(res.model)])
     assert out["min"] == every.min() and out["max"] == every.max()
     assert (out["vmin"], out["vmax"]) == tuple(np.percentile(every, [0.5, 99.5]))   # the shared colour range
+
+
+def test_example_record_from_a_finished_run_folder(example2):
+    """benchmarks/bench_examples.py --from-run: the per-model record read back from the results files
+    (fixture answers: 3 converged steps of 4 Newton iterations, F_max 68.76 / 66 N) and the wall time
+    from the folder's lock file to its newest file."""
+    import importlib.util
+    import os
+    from pathlib import Path
+
+    _, d, _, _ = example2
+    (d / ".pixmuscle.lock").write_text(json.dumps({"argv": ["/x/bin/pixmuscle", "run", "configs/lower_leg_small.yaml"],
+                                                   "started_utc": "2026-01-01T00:00:00+00:00"}))
+    for p in d.rglob("*"):
+        if p.is_file():
+            os.utime(p, (1767225600 + 100, 1767225600 + 100))   # 2026-01-01 00:01:40 UTC
+    spec = importlib.util.spec_from_file_location("bench_examples", Path(__file__).parents[1] / "benchmarks" / "bench_examples.py")
+    be = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(be)
+    key, rec = be.from_run("lower_leg_small", d, None, 1.5, [2.0, 2.1])
+    assert key == "lower_leg_small" and rec["status"] == "complete"
+    assert rec["command"] == "pixmuscle run configs/lower_leg_small.yaml"
+    assert rec["wall_s"] == 100.0 and rec["peak_rss_GB"] == 1.5 and rec["load_avg"] == [2.0, 2.1]
+    m = rec["models"]
+    assert list(m) == ["coarse", "fine"]
+    assert m["coarse"]["newton_iterations"] == 12 and m["coarse"]["steps_converged"] == 3
+    assert m["coarse"]["F_max_N"] == pytest.approx(68.76) and m["fine"]["F_max_N"] == pytest.approx(66.0)
+    assert m["coarse"]["nodes"] == load_results(d / "results_coarse.h5").model.n_nodes
+    only = d / "coarse_only"            # one of the config's two models, no lock file
+    only.mkdir()
+    (only / "results_coarse.h5").write_bytes((d / "results_coarse.h5").read_bytes())
+    key, rec = be.from_run("lower_leg_small", only, None, None, None)
+    assert key == "lower_leg_small [coarse]" and rec["wall_s"] is None and rec["peak_rss_GB"] is None
