@@ -360,6 +360,28 @@ def test_cg_amg_rebuilds_when_stale_iterations_cost_a_build():
     assert np.linalg.norm(system.tangent_operator(state) @ x - r) <= 1e-8 * np.linalg.norm(r) * 1.01
 
 
+def test_cg_amg_solves_an_indefinite_tangent_by_fgmres():
+    """Negative curvature stops CG; the same system is then solved by FGMRES with the same AMG
+    preconditioner, to the requested residual (checked against a dense solve)."""
+    from pixmuscle.mechanics.linsolve import KrylovAMGSolver
+
+    model = _mixed_leg_like_model()
+    system = _system(model)
+    state = system.evaluate(np.zeros((model.n_nodes, 3)), 1.0, 0.5)
+    K = system.tangent_operator(state) @ np.eye(3 * model.n_nodes)
+    lam = np.linalg.eigvalsh(0.5 * (K + K.T))
+    shift = 0.5 * (lam[2] + lam[3])  # three negative eigenvalues, none near zero
+    A = K - shift * np.eye(K.shape[0])
+    s = KrylovAMGSolver(model.X, model.ijk)
+    s.prepare(system, state)
+    s._A = spla.aslinearoperator(A)
+    b = np.random.default_rng(3).standard_normal(K.shape[0])
+    x = s.solve(b, rtol=1e-9)
+    assert s.info["indefinite_solves"] == 1
+    assert np.linalg.norm(A @ x - b) <= 1e-9 * np.linalg.norm(b) * 1.01
+    assert np.allclose(x, np.linalg.solve(A, b), rtol=1e-6, atol=1e-8 * np.abs(np.linalg.solve(A, b)).max())
+
+
 @pytest.mark.skipif(not pardiso.available(), reason="MKL PARDISO not installed")
 def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
     """PARDISO's solution equals SciPy's sparse LU solve; its inertia equals numpy's eigenvalue count."""

@@ -27,7 +27,8 @@ itself is not: the new active fibre stress makes it indefinite along the soft la
 clamped muscle (geometric stiffness of the deviatoric active stress), its update overshoots
 that mode many times, and Newton then wandered for ~10 iterations at a relative residual ≈ 1
 (docs/performance.md, "Newton convergence"). Any later update that is no descent direction of
-Π (Δd·r ≤ 0), or whose line search fails, is recomputed with the same converged tangent.
+Π (Δd·r ≤ 0), whose linear solve fails, or whose line search fails, is recomputed with the same
+converged tangent.
 
 Line search (:func:`line_search`): an energy line search — the step factor s is the root of
 Π′(s) = −Δd·r(d + sΔd), bracketed and interpolated by regula falsi, unless the full step already
@@ -244,6 +245,9 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0, first_
                 linsolver.prepare(system, tangent_state)
                 dd = linsolver.solve(state.r.reshape(-1), rtol=eta).reshape(state.d.shape)
             except SolverError as exc:
+                if k + 1 < len(tangents):  # the converged state's tangent is the fallback
+                    _LOG.debug("load step %d, Newton iteration %d: %s; using the converged tangent", step, it, exc)
+                    continue
                 rows.append(NewtonRow(step, t, it, rn, rel, 0.0, 0.0))
                 return NewtonResult(state, False, it, rows, rel, f"linear solver: {exc}")
             if k + 1 < len(tangents) and float(np.vdot(dd, state.r)) <= 0.0:

@@ -1,4 +1,11 @@
-"""Iterative backend ``cg_amg``: CG on the matrix-free tangent with a smoothed-aggregation AMG preconditioner."""
+"""Iterative backend ``cg_amg``: CG on the matrix-free tangent with a smoothed-aggregation AMG preconditioner.
+
+The tangent of activated muscle can be indefinite (an active fibre stress on the descending limb of
+the force–length curve, a passive law that loses ellipticity): CG then meets a direction of
+negative curvature (pᵀ K p ≤ 0) and cannot go on. That system is solved again by flexible GMRES
+(:func:`.fgmres.fgmres`, which needs no definiteness) with the same AMG preconditioner, so Newton
+gets its update instead of a cut-back load step.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +17,7 @@ import scipy.sparse as sp
 
 from ...errors import SolverError
 from .base import LinearSolver, pcg, register, rigid_body_modes
+from .fgmres import fgmres
 
 _LOG = logging.getLogger(__name__)
 
@@ -51,6 +59,10 @@ class KrylovAMGSolver(LinearSolver):
 
     Notes
     -----
+    Indefinite systems: when CG stops on negative curvature the same system is solved by
+    FGMRES (restart ``restart``) with the same preconditioner, from zero, to the same relative
+    residual; ``info["indefinite_solves"]`` counts them.
+
     Rebuild policy (the "ski-rental" rule): the first solve after a build sets the reference rate,
     CG iterations per decade of residual reduction. Every later solve that needs more iterations
     than that rate predicts adds its extra iterations, times the measured seconds per
@@ -66,8 +78,9 @@ class KrylovAMGSolver(LinearSolver):
     name = "cg_amg"
 
     def __init__(self, X, ijk, rtol: float = 1e-8, maxiter: int = 2000, reach: int = 2, aggregate=(3, 3, 1),
-                 theta: float = 0.1):
+                 theta: float = 0.1, restart: int = 100):
         super().__init__()
+        self.restart = restart
         self.B = rigid_body_modes(X)
         self.ijk = np.asarray(ijk)
         self.rtol = rtol
@@ -82,7 +95,8 @@ class KrylovAMGSolver(LinearSolver):
         self._stale = True
         self._system = None
         self._state = None
-        self.info.update(preconditioner_builds=0, krylov_iterations=0, levels=0, operator_complexity=0.0)
+        self.info.update(preconditioner_builds=0, krylov_iterations=0, levels=0, operator_complexity=0.0,
+                         indefinite_solves=0)
 
     def _build(self):
         import pyamg
@@ -137,17 +151,23 @@ class KrylovAMGSolver(LinearSolver):
         rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
         b = np.asarray(r, float)
         x, its, status = pcg(self._A, b, self._M, rtol, self.maxiter)
-        total = its
-        if status != "converged" and not self._fresh:
+        total, method = its, "CG"
+        if status == "maxiter" and not self._fresh:
             _LOG.debug("CG %s after %d iterations with a stale preconditioner; rebuilding it", status, its)
             self._build()
             x, its, status = pcg(self._A, b, self._M, rtol, self.maxiter)
             total += its
+        if status == "breakdown":  # negative curvature: the tangent is indefinite here
+            _LOG.debug("CG met negative curvature after %d iterations; solving by FGMRES", its)
+            self.info["indefinite_solves"] += 1
+            x, its, status = fgmres(self._A, b, self._M, rtol, self.maxiter, restart=self.restart)
+            total += its
+            method = "FGMRES (after negative curvature in CG)"
         self.info["iterations"] = total
         self.info["krylov_iterations"] += total
         self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
         if status != "converged":
-            raise SolverError(f"cg_amg: CG {status} after {its} iterations (relative residual target {rtol:.1e}); "
+            raise SolverError(f"cg_amg: {method} {status} after {its} iterations (relative residual target {rtol:.1e}); "
                               "check the boundary conditions (a free rigid-body motion makes K singular), or use "
                               "solver.backend: direct on small models")
         self._account(its, rtol)
