@@ -57,7 +57,7 @@ DEFAULT_CASES = ["5k:direct", "5k:direct_reuse", "5k:cg_amg", "10k:direct_reuse"
 BACKENDS = {
     "direct": {"backend": "direct", "reuse_factorization": False},           # PARDISO if MKL is installed; factorise every time
     "direct_reuse": {"backend": "direct", "reuse_factorization": True},      # kept factors precondition CG
-    "superlu": {"backend": "direct", "direct_engine": "superlu"},
+    "superlu": {"backend": "direct", "engine": "superlu"},
     "cg_amg": {"backend": "cg_amg"},
 }
 

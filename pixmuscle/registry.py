@@ -64,8 +64,9 @@ class Registry:
     def register(self, name: str, *, options: type | None = None, **attrs) -> Callable:
         """Decorator registering ``obj`` under ``name``; ``attrs`` are declared properties (e.g. ``needs``).
 
-        The decorated object gets ``registry_key = (key, name)``, so :func:`pixmuscle.store._plain`
-        writes the name back into plain config data.
+        The decorated object and its options dataclass get ``registry_key = (key, name)``, so
+        :meth:`entry_of` finds the entry of an options instance and :func:`pixmuscle.store._plain`
+        writes the name back into plain config data. An options dataclass belongs to one entry.
         """
 
         def deco(obj):
@@ -75,8 +76,11 @@ class Registry:
             old = self._entries.get(name)
             if old is not None and old.obj.__qualname__ != obj.__qualname__:
                 raise ValueError(f"{self.what} {name!r} is registered twice ({old.obj!r} and {obj!r})")
+            mine = vars(opts).get("registry_key")
+            if mine is not None and mine != (self.key, name):
+                raise ValueError(f"{self.what} {name!r}: options {opts.__qualname__} already belong to {mine[1]!r}")
             self._entries[name] = Entry(name, obj, opts, dict(attrs))
-            obj.registry_key = (self.key, name)
+            obj.registry_key = opts.registry_key = (self.key, name)
             return obj
 
         return deco
@@ -103,7 +107,7 @@ class Registry:
         return self._entries[name]
 
     def entry_of(self, obj: Any) -> Entry:
-        """The entry whose object is ``obj`` or ``obj``'s class."""
+        """The entry whose object or options dataclass is ``obj`` or ``obj``'s class."""
         key = getattr(obj, "registry_key", None)
         if key is None or key[0] != self.key or key[1] not in self._entries:
             raise InputError(f"{obj!r} is not a registered {self.what}")

@@ -301,15 +301,15 @@ def test_every_backend_gives_the_direct_solution():
     model = _mixed_leg_like_model()
     bcs = [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]}]
     tight = {"residual_tol": 1e-10, "energy_tol": 1e-18}
-    variants = {"superlu": {"backend": "direct", "direct_engine": "superlu", "reuse_factorization": False},
-                "superlu_reuse": {"backend": "direct", "direct_engine": "superlu"},
+    variants = {"superlu": {"backend": "direct", "engine": "superlu", "reuse_factorization": False},
+                "superlu_reuse": {"backend": "direct", "engine": "superlu"},
                 "cg_amg": {"backend": "cg_amg"}}
     if pardiso.available():
-        variants["pardiso"] = {"backend": "direct", "direct_engine": "pardiso", "reuse_factorization": False}
-        variants["pardiso_reuse"] = {"backend": "direct", "direct_engine": "pardiso", "reuse_factorization": True}
+        variants["pardiso"] = {"backend": "direct", "engine": "pardiso", "reuse_factorization": False}
+        variants["pardiso_reuse"] = {"backend": "direct", "engine": "pardiso", "reuse_factorization": True}
     from pixmuscle.mechanics.linsolve import petsc
 
-    for name in sorted(set(BACKENDS) - {"direct", "cg_amg"}):  # backends registered by optional modules
+    for name in sorted(set(BACKENDS.names()) - {"direct", "cg_amg"}):  # auto, optional and test-defined backends
         if name == "petsc" and not petsc.available():
             continue  # petsc4py not installed here (tests/test_petsc.py says so)
         variants[name] = {"backend": name}

@@ -23,6 +23,7 @@ from dataclasses import field
 from pathlib import Path
 from typing import Any, Literal
 
+from .linsolve import BACKENDS, AutoOptions
 from .materials import DEFAULTS, LAWS
 
 #: most load steps of one solve (docs/failures.md): a sweep needs 10–20; cut-backs refine by themselves
@@ -167,27 +168,6 @@ class NewtonConfig:
                              "with the largest of the step, so it needs a second iteration); use 2 or more")
 
 
-@dataclasses.dataclass(frozen=True)
-class LinearSolverConfig:
-    """Linear solver backend (:mod:`pixmuscle.mechanics.linsolve`)."""
-
-    backend: str = field(default="auto", metadata={"doc": "auto, or a registered backend: direct, cg_amg, mixed_amg (experimental), petsc (pixmuscle.mechanics.linsolve.BACKENDS)"})
-    auto_direct_max_dofs: int | None = field(default=None, metadata={"range": (0, None), "doc": "auto: direct solver up to this many unknowns (3 per node), cg_amg above; default 45,000 (15k nodes: the measured cross-over with cg_amg, ~2.5 GB of factors) with PARDISO, 12,000 with SuperLU"})
-    rtol: float = field(default=1.0e-10, metadata={"gt": 0, "doc": "relative residual of the Krylov iterations when Newton gives none; also the floor of Newton's adaptive tolerance"})
-    direct_engine: Literal["auto", "pardiso", "superlu"] = field(default="auto", metadata={"doc": "direct: MKL PARDISO (optional package mkl, pip install 'pixmuscle[fast]') or SciPy's SuperLU; auto takes PARDISO when installed"})
-    reuse_factorization: bool = field(default=True, metadata={"doc": "direct: keep the factors of an earlier tangent and use them to precondition CG on the exact (matrix-free) tangent; refactorise when that gets slow (> 20 CG iterations, or more than a quarter of the time of assembly + factorisation)"})
-    maxiter: int = field(default=2000, metadata={"range": (1, None)})
-    petsc_options: dict[str, str | float | bool] = field(default_factory=dict, metadata={"doc": "petsc: options for PETSc's options database, names without the dash (default ksp_type: cg, pc_type: gamg; e.g. {ksp_type: minres, pc_type: hypre, ksp_monitor: true})"})
-
-    def __post_init__(self):
-        from .linsolve import BACKENDS, petsc
-
-        if self.backend != "auto" and self.backend not in BACKENDS:
-            raise ValueError(f"backend: expected auto or one of {', '.join(sorted(BACKENDS))}, got {self.backend!r}")
-        if self.backend == "petsc" and not petsc.available():
-            raise ValueError(f"backend: petsc: {petsc.INSTALL_HINT}")
-
-
 def _default_bcs() -> list:
     # paper Example 2: both ends fixed, bone surface fixed in the cross-sectional plane
     return [
@@ -215,7 +195,10 @@ class SolveConfig:
     volumetric: VolumetricConfig = field(default_factory=VolumetricConfig)
     penalty: PenaltyConfig = field(default_factory=PenaltyConfig)
     newton: NewtonConfig = field(default_factory=NewtonConfig)
-    solver: LinearSolverConfig = field(default_factory=LinearSolverConfig)
+    solver: Any = field(default=AutoOptions(), metadata={
+        "registry": BACKENDS, "default": AutoOptions(),
+        "doc": f"{{backend: name, …options}}: linear-solver backend ({', '.join(BACKENDS.names())}; "
+               "pixmuscle.mechanics.linsolve), default auto: direct on small models, cg_amg on large ones"})
 
     def __post_init__(self):
         act = dict(self.activation)

@@ -302,6 +302,19 @@ class MechanicalSystem:
         self.timings["n_assembly"] += 1
         return asm.matrix(data)
 
+    def statistics(self) -> dict:
+        """Totals for the results' ``info``: seconds and counts of the material evaluations
+        (``material_s``, ``n_evaluate``), assemblies (``assembly_s``, ``n_assembly``) and block
+        patterns (``pattern_s``), and the stored entries per row of the patterns built: the
+        tangent's (``nnz_per_row``) and the filtered preconditioner stand-in's
+        (``preconditioner_nnz_per_row``)."""
+        out = {"pattern_s": self.timings.get("pattern_s", 0.0), "assembly_s": self.timings["assembly_s"],
+               "n_assembly": self.timings["n_assembly"], "material_s": self.timings["material_s"],
+               "n_evaluate": self.timings["n_evaluate"]}
+        for (reach, _), (asm, _) in self._assemblers.items():
+            out["nnz_per_row" if reach is None else "preconditioner_nnz_per_row"] = round(asm.nnz / (3 * self.n_nodes), 1)
+        return out
+
     def strain_energy(self, F: np.ndarray, alpha: float) -> float:
         """Σ_L V_L W(F_L), N·cm."""
         W = np.empty(F.shape[0])
@@ -524,13 +537,8 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
     system, info = build_system(model, cfg)
     system.activation = activation
     psi_nodes = _psi_nodes(model, cfg, system.scni.support)
-    linsolver = make_solver(cfg.solver.backend, model.X, auto_direct_max_dofs=cfg.solver.auto_direct_max_dofs,
-                            rtol=cfg.solver.rtol, maxiter=cfg.solver.maxiter, reuse=cfg.solver.reuse_factorization,
-                            ijk=model.ijk, width=2 * np.floor(np.asarray(cfg.support.a_over_h) + 0.5).astype(int),
-                            direct_engine=cfg.solver.direct_engine, petsc_options=cfg.solver.petsc_options)
-    info["linear_solver"] = linsolver.name
-    if "engine" in linsolver.info:
-        info["linear_engine"] = linsolver.info["engine"]
+    linsolver = make_solver(cfg.solver, model.X, ijk=model.ijk,
+                            width=2 * np.floor(np.asarray(cfg.support.a_over_h) + 0.5).astype(int))
     steps: list = []
     last_state: list = []
     lin_time = {"setup_s": 0.0, "solve_s": 0.0, "iterations": []}
@@ -592,23 +600,15 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
     else:
         failed_rows = []
     info.update(total_s=time.perf_counter() - t_start, linear_setup_s=lin_time["setup_s"],
-                linear_solve_s=lin_time["solve_s"], linear_iterations=lin_time["iterations"],
-                factorizations=int(linsolver.info.get("factorizations", 0)),
-                preconditioner_builds=int(linsolver.info.get("preconditioner_builds", 0)),
-                krylov_iterations=int(linsolver.info.get("krylov_iterations", 0)),
-                factor_nnz=int(linsolver.info.get("factor_nnz", 0)),
-                pattern_s=system.timings.get("pattern_s", 0.0),
-                assembly_s=system.timings["assembly_s"], n_assembly=system.timings["n_assembly"],
-                material_s=system.timings["material_s"], n_evaluate=system.timings["n_evaluate"])
+                linear_solve_s=lin_time["solve_s"], linear_iterations=lin_time["iterations"])
+    info.update(linsolver.statistics())
+    info.update(system.statistics())
     gaps = constraint_gap(steps, float(np.min(model.spacing)))
     for name, g in gaps.items():
         _LOG.log(logging.WARNING if g["significant"] else logging.INFO,
                  "boundary condition %s: constraint gap %.3g cm (%.2g %% of the largest displacement, %.3g cm); "
                  "its nodes move %.3g cm in the constrained components", name, g["max_cm"], 100 * g["relative"],
                  g["max_displacement_cm"], g["node_cm"])
-    for (reach, _), (asm, _) in system._assemblers.items():
-        key = "nnz_per_row" if reach is None else "preconditioner_nnz_per_row"
-        info[key] = round(asm.nnz / (3 * model.n_nodes), 1)
     warnings = []
     if last_state:
         msg = ellipticity_warning(system, last_state[0])

@@ -1,17 +1,20 @@
 """Linear solvers for the Newton systems K Δd = r (3N unknowns, symmetric stiffness).
 
-A backend has ``prepare(system, state)`` (set up for the tangent of a new Newton state) and
-``solve(r, rtol=None)``; it keeps ``info`` (last iteration count, set-up and solve times). Each
-backend is one module of this package that registers a factory under its name
-(:func:`.base.register`); :func:`make_solver` builds one by name, so a new backend needs no change
-anywhere else. Backends:
+A backend has ``prepare(system, state)`` (set up for the tangent of a new Newton state),
+``solve(r, rtol=None)`` and ``statistics()`` (what the results keep); it keeps ``info`` (last
+iteration count, set-up and solve times). Each backend is one module of this package that
+registers its :class:`~.base.LinearSolver` class in :data:`BACKENDS` with its own options
+dataclass (:mod:`.base`); the package imports its modules when it loads, the config section
+``solve.solver: {backend: <name>, …options}`` is validated by that dataclass, and
+:func:`make_solver` builds the backend, so a new backend needs no change anywhere else. Backends:
 
 ``direct``
     Sparse direct factorisation of the assembled tangent (:class:`DirectSolver`): MKL PARDISO
     LDLᵀ when the optional ``mkl`` package is installed (multi-threaded, symbolic analysis once
     per model), otherwise SciPy's SuperLU in a geometric nested-dissection order. Robust for
     the nearly incompressible tissues and any penalty number; optionally the factors are kept
-    and precondition CG on the exact tangent (``reuse_factorization``). The SCNI tangent couples
+    and precondition CG on the exact tangent (``reuse_factorization``); the two engines
+    (:mod:`.factorization`) share one reuse policy (:class:`~.direct.ReusePolicy`). The SCNI tangent couples
     each node with ~300 others (±4 voxels), so the factors grow fast: with PARDISO ~2 s and
     0.3 GB at 5k nodes, ~50 s and 2.6 GB at 20k; beyond ~40k nodes they no longer fit 16 GB
     (docs/performance.md).
@@ -34,49 +37,57 @@ anywhere else. Backends:
     each rank assembles the tangent rows of a slab of slices into a distributed AIJ matrix,
     solved by KSP GMRES + GAMG with the rigid-body near-null space by default;
     ``solve.solver.petsc_options`` go to PETSc's options database (:mod:`.petsc`, docs/petsc.md).
-``auto``
-    ``direct`` up to ``auto_direct_max_dofs`` unknowns (15k nodes with PARDISO, 4k with
-    SuperLU), ``cg_amg`` above.
+``auto`` (the default)
+    ``direct`` up to ``direct_max_dofs`` unknowns (15k nodes with PARDISO, 4k with SuperLU),
+    ``cg_amg`` above (:mod:`.auto`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .base import BACKENDS, LinearSolver, pcg, register, rigid_body_modes
-from .cg_amg import KrylovAMGSolver, voxel_aggregates
-from .direct import DirectSolver, nested_dissection
-from .fgmres import fgmres
-from .mixed import MixedBlockSolver
-from .petsc import PETScSolver
+from .base import BACKENDS, LinearSolver, pcg, rigid_body_modes
 
-__all__ = ["LinearSolver", "DirectSolver", "KrylovAMGSolver", "BACKENDS", "register", "make_solver", "pcg",
-           "rigid_body_modes", "voxel_aggregates", "nested_dissection", "AUTO_DIRECT_MAX_DOFS", "PETScSolver",
-           "MixedBlockSolver", "fgmres"]
+BACKENDS.discover()
 
-# direct up to here: PARDISO + reuse is faster than cg_amg at 11.5k nodes (351 s against 626 s for the
-# benchmark sweep) and slower at 21k (2,244 s against ~1,200 s extrapolated), docs/performance.md
-AUTO_DIRECT_MAX_DOFS = {"pardiso": 45_000, "superlu": 12_000}
+from .auto import AUTO_DIRECT_MAX_DOFS, AutoOptions  # noqa: E402
+from .cg_amg import CGAMGOptions, KrylovAMGSolver, voxel_aggregates  # noqa: E402
+from .direct import DirectOptions, DirectSolver, ReusePolicy  # noqa: E402
+from .factorization import PardisoFactor, SuperLUFactor, nested_dissection  # noqa: E402
+from .fgmres import fgmres  # noqa: E402
+from .mixed import MixedAMGOptions, MixedBlockSolver  # noqa: E402
+from .petsc import PETScOptions, PETScSolver  # noqa: E402
+
+__all__ = ["LinearSolver", "DirectSolver", "KrylovAMGSolver", "BACKENDS", "make_solver", "pcg", "rigid_body_modes",
+           "voxel_aggregates", "nested_dissection", "AUTO_DIRECT_MAX_DOFS", "PETScSolver", "MixedBlockSolver", "fgmres",
+           "AutoOptions", "CGAMGOptions", "DirectOptions", "MixedAMGOptions", "PETScOptions", "ReusePolicy",
+           "PardisoFactor", "SuperLUFactor"]
 
 
-def make_solver(backend: str, X: np.ndarray, *, auto_direct_max_dofs: int | None = None, **options) -> LinearSolver:
-    """Create a registered backend by name (``auto``, ``direct``, ``cg_amg``, …) for the nodes ``X`` (N, 3).
+def make_solver(backend, X: np.ndarray, *, ijk: np.ndarray | None = None, width=(4, 4, 4), **options) -> LinearSolver:
+    """Create a backend for the nodes ``X`` (N, 3), cm.
 
-    ``options`` go to the backend's factory (:data:`BACKENDS`): ``ijk`` (grid indices of the
-    nodes; the nested-dissection order of SuperLU, required by ``cg_amg``), ``width``
-    (separator thickness per axis, cells), ``rtol``, ``maxiter``, ``reuse``, ``direct_engine``.
-    ``auto`` takes ``direct`` up to ``auto_direct_max_dofs`` unknowns (default
-    :data:`AUTO_DIRECT_MAX_DOFS` of the direct engine: beyond, the factors outgrow the memory)
-    and ``cg_amg`` above.
+    Parameters
+    ----------
+    backend : str or options dataclass
+        A registered name (``auto``, ``direct``, ``cg_amg``, …) with its ``options`` as keywords,
+        or a backend's options instance (the parsed ``solve.solver`` section).
+    X : (N, 3) float
+    ijk : (N, 3) int, optional
+        Voxel indices of the nodes (the nested-dissection order of SuperLU; required by the
+        iterative backends).
+    width : (3,) int
+        Coupling reach of the stiffness per axis, cells (separator thickness of the nested dissection).
+    **options
+        Options of the named backend (its dataclass's fields, e.g. ``rtol``, ``engine``).
+
+    Raises
+    ------
+    InputError
+        Unknown backend or option (the message names it and lists the choices).
     """
-    from .. import pardiso
-
-    if backend == "auto":
-        if auto_direct_max_dofs is None:
-            engine = options.get("direct_engine", "auto")
-            engine = engine if engine != "auto" else ("pardiso" if pardiso.available() else "superlu")
-            auto_direct_max_dofs = AUTO_DIRECT_MAX_DOFS.get(engine, 12_000)
-        backend = "direct" if 3 * np.asarray(X).shape[0] <= auto_direct_max_dofs else "cg_amg"
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown linear solver backend {backend!r}: expected auto or one of {', '.join(sorted(BACKENDS))}")
-    return BACKENDS[backend](X, **options)
+    if isinstance(backend, str):
+        backend = BACKENDS.parse({BACKENDS.key: backend, **options}, "solver")
+    elif options:
+        raise TypeError("make_solver: options are given either as keywords with a name or as an options dataclass")
+    return BACKENDS.entry_of(backend).obj.from_options(backend, X, ijk=ijk, width=width)

@@ -1,44 +1,77 @@
 """Interface of a linear-solver backend, the backend registry, and the Krylov pieces the backends share.
 
-A backend is one module: a :class:`LinearSolver` subclass and a factory registered under the
-backend's name with :func:`register`. The factory takes the node coordinates and the options of
-``solve.solver`` (keyword arguments; each factory takes the ones it needs and ignores the others)::
+A backend is one module of this package: a :class:`LinearSolver` subclass registered in
+:data:`BACKENDS` under the backend's name with its own frozen options dataclass, which is the
+config section ``solve.solver: {backend: <name>, …options}``::
 
-    @register("mybackend")
-    def _make(X, *, ijk=None, rtol=1e-10, **_):
-        return MySolver(X, rtol=rtol)
+    @dataclasses.dataclass(frozen=True)
+    class MyOptions(Iterative):          # rtol and maxiter, plus the backend's own fields
+        omega: float = field(default=1.0, metadata={"gt": 0, "doc": "relaxation factor"})
 
-:func:`pixmuscle.mechanics.linsolve.make_solver` then builds it by name; nothing else changes.
+    @BACKENDS.register("mybackend", options=MyOptions)
+    class MySolver(LinearSolver):
+        name = "mybackend"
+
+        @classmethod
+        def from_options(cls, opts, X, *, ijk=None, width=(4, 4, 4)):
+            return cls(rtol=opts.rtol, maxiter=opts.maxiter, omega=opts.omega)
+
+The package imports its modules when it loads (:meth:`~pixmuscle.registry.Registry.discover`), so
+the backend is then known to the config, to :func:`pixmuscle.mechanics.linsolve.make_solver` and
+to :func:`pixmuscle.mechanics.solve.solve`, which merges its :meth:`LinearSolver.statistics`
+into the results' ``info``; nothing else changes.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import dataclasses
+from dataclasses import field
 
 import numpy as np
 import scipy.sparse as sp
 
-#: backend name → factory ``(X, **options) -> LinearSolver``
-BACKENDS: dict[str, Callable] = {}
+from ...registry import Registry
+
+#: Registered linear-solver backends: ``solve.solver: {backend: <name>, …options}``.
+BACKENDS = Registry("linear-solver backend", key="backend", package="pixmuscle.mechanics.linsolve")
 
 
-def register(name: str) -> Callable:
-    """Decorator: register a backend factory under ``name`` (the value of ``solve.solver.backend``)."""
+@dataclasses.dataclass(frozen=True)
+class Tolerance:
+    """Options every backend has: the accuracy of a linear solve when Newton asks for none."""
 
-    def deco(factory: Callable) -> Callable:
-        BACKENDS[name] = factory
-        return factory
+    rtol: float = field(default=1.0e-10, metadata={"gt": 0, "doc": "relative residual of the Krylov iterations when "
+                                                                    "Newton gives none; also the floor of Newton's "
+                                                                    "adaptive tolerance"})
 
-    return deco
+
+@dataclasses.dataclass(frozen=True)
+class Iterative(Tolerance):
+    """Options of an iterative backend: tolerance and iteration limit."""
+
+    maxiter: int = field(default=2000, metadata={"range": (1, None), "doc": "Krylov iterations per linear solve"})
 
 
 class LinearSolver:
-    """Interface of a linear-solver backend."""
+    """Interface of a linear-solver backend.
+
+    ``info`` holds the counters of the last solve (``iterations``, ``setup_s``, ``solve_s``) and
+    the backend's running totals; :meth:`statistics` is what the results keep of them.
+    """
 
     name = "base"
 
     def __init__(self):
         self.info = {"iterations": 0, "setup_s": 0.0, "solve_s": 0.0}
+
+    @classmethod
+    def from_options(cls, opts, X: np.ndarray, *, ijk: np.ndarray | None = None, width=(4, 4, 4)) -> LinearSolver:
+        """The backend for nodes ``X`` (N, 3) cm, configured by its options dataclass ``opts``.
+
+        ``ijk`` (N, 3) int are the voxel indices of the nodes; ``width`` (3,) int the coupling
+        reach of the stiffness per axis, in cells (2·⌊a/h + ½⌋).
+        """
+        raise NotImplementedError  # pragma: no cover - interface
 
     def prepare(self, system, state) -> None:
         """Set up for the tangent of ``state`` (default: factorise the assembled stiffness)."""
@@ -50,6 +83,11 @@ class LinearSolver:
     def solve(self, r: np.ndarray, rtol: float | None = None) -> np.ndarray:  # pragma: no cover - interface
         """Solve K x = r; ``rtol`` is the accuracy the caller needs (iterative backends)."""
         raise NotImplementedError
+
+    def statistics(self) -> dict:
+        """Totals of the whole solve for the results' ``info`` (merged as they are): the backend's
+        name under ``linear_solver`` and whatever counts the backend keeps."""
+        return {"linear_solver": self.name}
 
 
 def rigid_body_modes(X: np.ndarray) -> np.ndarray:

@@ -9,6 +9,7 @@ gets its update instead of a cut-back load step.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 
@@ -16,7 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...errors import SolverError
-from .base import LinearSolver, pcg, register, rigid_body_modes
+from .base import BACKENDS, Iterative, LinearSolver, pcg, rigid_body_modes
 from .fgmres import fgmres
 
 _LOG = logging.getLogger(__name__)
@@ -37,6 +38,12 @@ def voxel_aggregates(ijk: np.ndarray, block=(3, 3, 1)) -> sp.csr_matrix:
     return sp.csr_matrix((np.ones(n), (np.arange(n), agg)), shape=(n, int(agg.max()) + 1))
 
 
+@dataclasses.dataclass(frozen=True)
+class CGAMGOptions(Iterative):
+    """Options of ``solve.solver: {backend: cg_amg, …}``: tolerance and CG iterations."""
+
+
+@BACKENDS.register("cg_amg", options=CGAMGOptions)
 class KrylovAMGSolver(LinearSolver):
     """CG on the matrix-free tangent, preconditioned by smoothed-aggregation AMG (pyamg).
 
@@ -97,6 +104,12 @@ class KrylovAMGSolver(LinearSolver):
         self._state = None
         self.info.update(preconditioner_builds=0, krylov_iterations=0, levels=0, operator_complexity=0.0,
                          indefinite_solves=0)
+
+    @classmethod
+    def from_options(cls, opts, X, *, ijk=None, width=(4, 4, 4)):
+        if ijk is None:
+            raise ValueError(f"{cls.name} needs the voxel indices ijk of the nodes")
+        return cls(X, ijk, **dataclasses.asdict(opts))
 
     def _build(self):
         import pyamg
@@ -173,9 +186,9 @@ class KrylovAMGSolver(LinearSolver):
         self._account(its, rtol)
         return x
 
-
-@register("cg_amg")
-def _make_cg_amg(X, *, ijk=None, rtol: float = 1e-10, maxiter: int = 2000, **_) -> KrylovAMGSolver:
-    if ijk is None:
-        raise ValueError("cg_amg needs the voxel indices ijk of the nodes")
-    return KrylovAMGSolver(X, ijk, rtol=rtol, maxiter=maxiter)
+    def statistics(self) -> dict:
+        """Name, ``preconditioner_builds``, ``krylov_iterations`` (all solves) and
+        ``indefinite_solves`` (solves finished by FGMRES after negative curvature in CG)."""
+        return super().statistics() | {"preconditioner_builds": self.info["preconditioner_builds"],
+                                       "krylov_iterations": self.info["krylov_iterations"],
+                                       "indefinite_solves": self.info["indefinite_solves"]}

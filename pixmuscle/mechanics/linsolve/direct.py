@@ -1,94 +1,96 @@
-"""Sparse direct backend ``direct``: PARDISO LDLᵀ or SuperLU, with optional factor reuse."""
+"""Sparse direct backend ``direct``: a factorisation engine (PARDISO or SuperLU) and a reuse policy."""
 
 from __future__ import annotations
 
-import logging
+import dataclasses
 import time
+from dataclasses import field
+from typing import Literal
 
 import numpy as np
-import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ...errors import SolverError
-from .base import LinearSolver, pcg, register
+from .base import BACKENDS, LinearSolver, Tolerance, pcg
+from .factorization import ENGINES, PARDISO_MISSING, engine_name
 
-_LOG = logging.getLogger(__name__)
+
+@dataclasses.dataclass(frozen=True)
+class DirectOptions(Tolerance):
+    """Options of ``solve.solver: {backend: direct, …}``."""
+
+    engine: Literal["auto", "pardiso", "superlu"] = field(default="auto", metadata={"doc": "MKL PARDISO (optional package mkl, pip install 'pixmuscle[fast]') or SciPy's SuperLU; auto takes PARDISO when installed"})
+    reuse_factorization: bool = field(default=True, metadata={"doc": "keep the factors of an earlier tangent and use them to precondition CG on the exact (matrix-free) tangent; refactorise when that gets slow (> 20 CG iterations, or more than a quarter of the time of assembly + factorisation)"})
+
+    def __post_init__(self):
+        if self.engine == "pardiso" and engine_name("auto") != "pardiso":
+            raise ValueError(PARDISO_MISSING)
 
 
-def nested_dissection(ijk: np.ndarray, width, leaf: int = 64) -> np.ndarray:
-    """Geometric nested-dissection ordering of grid nodes (fill-reducing order for LU).
+class ReusePolicy:
+    """When the direct backend factorises: the state of the kept factors.
 
-    The node set is split recursively at the median of its longest axis by a separator slab of
-    ``width[k]`` grid layers (the coupling reach of the stiffness along axis k: 2·⌊a/h + ½⌋ cells);
-    each part is ordered before its separator. Loops run over sub-domains (about N / ``leaf``),
-    not over nodes.
+    ``factors`` is ``"none"`` (nothing factorised yet), ``"current"`` (the factors are of the
+    tangent being solved: direct solves), ``"reused"`` (of an earlier tangent: they precondition a
+    Krylov solve on the current one) or ``"stale"`` (too slow as a preconditioner: factorise the
+    next tangent). Without ``reuse`` every tangent is factorised.
 
     Parameters
     ----------
-    ijk : (N, 3) int
-        Grid indices of the nodes.
-    width : (3,) int
-        Separator thickness per axis, in cells.
-    leaf : int
-        Sub-domains of at most this many nodes are not split further.
-
-    Returns
-    -------
-    (N,) int64
-        Node order (a permutation of 0..N-1).
+    reuse : bool
+    krylov_maxiter : int
+        Krylov iterations per solve with kept factors; a solve that needs more than half of them
+        makes the factors stale.
     """
-    ijk = np.asarray(ijk, np.int64)
-    width = np.broadcast_to(np.asarray(width, np.int64), (3,))
-    done = []
-    # iterative post-order: a task is either a node set to split or a separator to emit
-    tasks = [("split", np.arange(ijk.shape[0]))]
-    while tasks:
-        kind, idx = tasks.pop()
-        if kind == "emit" or idx.size <= leaf:
-            done.append(idx)
-            continue
-        c = ijk[idx]
-        lo, hi = c.min(axis=0), c.max(axis=0)
-        ax = int(np.argmax((hi - lo) / np.maximum(width, 1)))
-        w = int(width[ax])
-        if hi[ax] - lo[ax] + 1 < 2 * w + 2:
-            done.append(idx)
-            continue
-        m = int(np.median(c[:, ax]))
-        m = min(max(m, lo[ax] + 1), hi[ax] - w)
-        ca = c[:, ax]
-        left, sep, right = idx[ca < m], idx[(ca >= m) & (ca < m + w)], idx[ca >= m + w]
-        # processed in reverse: left first, then right, then the separator
-        tasks.append(("emit", sep))
-        tasks.append(("split", right))
-        tasks.append(("split", left))
-    return np.concatenate(done) if done else np.zeros(0, np.int64)
+
+    def __init__(self, reuse: bool, krylov_maxiter: int):
+        self.reuse = reuse
+        self.krylov_maxiter = krylov_maxiter
+        self.factors = "none"
+        self.cost_s = 0.0  # seconds of the last assembly + factorisation
+
+    def keep(self) -> bool:
+        """At a new Newton state: keep the factors (and solve matrix-free) instead of assembling?"""
+        return self.reuse and self.factors in ("current", "reused")
+
+    def must_factorize(self) -> bool:
+        """Given an assembled tangent: factorise it?"""
+        return self.factors in ("none", "stale") or not self.reuse
+
+    def factorized(self, cost_s: float) -> None:
+        """The current tangent was factorised in ``cost_s`` seconds (assembly included)."""
+        self.factors = "current"
+        self.cost_s = cost_s
+
+    def kept(self) -> None:
+        """The kept factors serve the current tangent as a preconditioner."""
+        self.factors = "reused"
+
+    @property
+    def exact(self) -> bool:
+        """True when the factors are of the current tangent."""
+        return self.factors == "current"
+
+    def solved(self, iterations: int, seconds: float) -> None:
+        """A Krylov solve with the kept factors converged: are they still worth keeping?"""
+        if iterations > self.krylov_maxiter // 2 or seconds > 0.25 * self.cost_s:
+            self.factors = "stale"  # refactorise at the next Newton iteration
 
 
+@BACKENDS.register("direct", options=DirectOptions)
 class DirectSolver(LinearSolver):
     """Sparse direct factorisation of the assembled tangent, with optional factorisation reuse.
 
-    Engines (``engine``):
+    The factorisation is an engine's (:mod:`.factorization`): ``pardiso``
+    (:class:`~.factorization.PardisoFactor`, MKL PARDISO LDLᵀ), ``superlu``
+    (:class:`~.factorization.SuperLUFactor`, SciPy's SuperLU in a nested-dissection order of the
+    voxel grid ``ijk``) or ``auto`` (PARDISO when MKL is installed, otherwise SuperLU). Every
+    solve gets up to three steps of iterative refinement against the assembled matrix; if it is
+    still inaccurate, the engine escalates its pivoting and refactorises, or, when it cannot,
+    GMRES preconditioned by the factors finishes the solve.
 
-    ``pardiso``
-        MKL PARDISO LDLᵀ (:mod:`.pardiso`; needs the optional ``mkl`` package): supernodal,
-        multi-threaded, METIS ordering; the symbolic analysis is done once per sparsity pattern
-        (fixed for a model) and every tangent costs only the numerical factorisation. Symmetric
-        indefinite pivoting, so tangents with negative eigenvalues are handled.
-    ``superlu``
-        SciPy's SuperLU in a geometric nested-dissection order of the voxel grid (``ijk``;
-        :func:`nested_dissection`) with symmetric (diagonal) pivoting, which keeps that order and
-        is several times faster than COLAMD for the wide SCNI stiffness (2.8× on a 2.8k-node
-        slab). If a solve is still inaccurate after refinement (small pivots of an indefinite
-        tangent), the matrix is refactorised with threshold pivoting in the same order, and as a
-        last resort with COLAMD and partial pivoting (the level then stays for later matrices).
-    ``auto``
-        PARDISO when MKL is installed, otherwise SuperLU.
-
-    Every solve gets up to three steps of iterative refinement against the assembled matrix.
-
-    Reuse (``reuse=True``): the factors of an earlier tangent K₀ are kept and later systems
-    K x = r are solved by conjugate gradients on the matrix-free exact tangent
+    Reuse (``reuse=True``, :class:`ReusePolicy`): the factors of an earlier tangent K₀ are kept and
+    later systems K x = r are solved by conjugate gradients on the matrix-free exact tangent
     (:meth:`~pixmuscle.mechanics.solve.MechanicalSystem.tangent_operator`, no assembly)
     preconditioned with K₀⁻¹ (GMRES if K₀ was indefinite), to the tolerance the caller asks
     (inexact Newton). The tangent is refactorised at the next Newton iteration when a solve
@@ -101,105 +103,37 @@ class DirectSolver(LinearSolver):
     def __init__(self, reuse: bool = True, rtol: float = 1e-10, krylov_maxiter: int = 40, ijk=None, width=(4, 4, 4),
                  engine: str = "auto"):
         super().__init__()
-        from .. import pardiso
-
-        if engine == "auto":
-            engine = "pardiso" if pardiso.available() else "superlu"
-        if engine == "pardiso" and not pardiso.available():
-            raise ValueError("solver.direct_engine: pardiso needs MKL (pip install 'pixmuscle[fast]'); "
-                             "use direct_engine: superlu or auto")
-        if engine not in ("pardiso", "superlu"):
-            raise ValueError(f"unknown direct engine {engine!r}: expected auto, pardiso or superlu")
-        self.engine = engine
-        self.reuse = reuse
+        name = engine_name(engine)
+        if name not in ENGINES:
+            raise ValueError(f"unknown direct engine {engine!r}: expected auto, {', '.join(ENGINES)}")
+        self.engine = ENGINES[name](ijk=ijk, width=width)
+        self.policy = ReusePolicy(reuse, krylov_maxiter)
         self.rtol = rtol
         self.krylov_maxiter = krylov_maxiter
-        self.perm = None
-        if ijk is not None and engine == "superlu":
-            order = nested_dissection(ijk, width)
-            self.perm = (3 * order[:, None] + np.arange(3)).ravel()
-        # SuperLU pivoting level: 0 ND order, diagonal pivots; 1 ND order, threshold pivoting; 2 COLAMD, partial pivoting
-        self._level = 0 if self.perm is not None else 2
-        self._lu = None
-        self._pattern = None
-        self._ldlt = None
         self._K = None
         self._op = None
         self._system = self._state = None
-        self._definite = False
-        # what the kept factors are: "none" (nothing factorised yet), "current" (the tangent being solved:
-        # direct solves), "reused" (an earlier tangent: they precondition a Krylov solve on the current one),
-        # "stale" (too slow as a preconditioner: refactorise at the next Newton iteration)
-        self._factors = "none"
-        self._factor_cost = 0.0  # seconds of the last assembly + factorisation
         self._assembly_s = 0.0
-        self.info.update(factorizations=0, krylov_iterations=0, engine=engine, analysis_s=0.0)
+        self.info.update(factorizations=0, krylov_iterations=0, engine=name, analysis_s=0.0)
+
+    @classmethod
+    def from_options(cls, opts: DirectOptions, X, *, ijk=None, width=(4, 4, 4)) -> DirectSolver:
+        return cls(reuse=opts.reuse_factorization, rtol=opts.rtol, ijk=ijk, width=width, engine=opts.engine)
 
     # -- factorisation -------------------------------------------------------------------
     def _refactor(self):
         t0 = time.perf_counter()
-        if self.engine == "pardiso":
-            self._refactor_pardiso()
-        else:
-            self._refactor_superlu()
-        self._factors = "current"
-        self._factor_cost = self._assembly_s + time.perf_counter() - t0
+        self.engine.factorize(self._K)
+        self.info.update(self.engine.info)
+        self.policy.factorized(self._assembly_s + time.perf_counter() - t0)
         self.info["factorizations"] += 1
         self.info["setup_s"] += time.perf_counter() - t0
 
-    def _refactor_pardiso(self):
-        from ..pardiso import PardisoError, PardisoLDLT, SymmetricPattern
-
-        K = self._K
-        if K.format != "bsr" or K.blocksize != (3, 3):
-            K = sp.bsr_matrix(K, blocksize=(3, 3))
-        if self._pattern is None or not self._pattern.matches(K):
-            if self._ldlt is not None:
-                self._ldlt.free()
-            self._pattern = SymmetricPattern(K)
-            self._ldlt = PardisoLDLT(self._pattern)
-            self.info["analysis_s"] += self._ldlt.info["analysis_s"]
-        try:
-            self._ldlt.factorize(self._pattern.values(K))
-        except PardisoError as exc:
-            raise SolverError(f"direct solver (PARDISO): {exc}; check the boundary conditions") from None
-        neg = self._ldlt.info["inertia"][1]
-        self._definite = neg == 0
-        self.info.update(factor_nnz=self._ldlt.info["factor_nnz"], factor_gflop=self._ldlt.info["factor_gflop"],
-                         negative_pivots=neg)
-
-    def _refactor_superlu(self):
-        K = sp.csr_matrix(self._K)
-        try:
-            if self._level >= 2:
-                self._lu = spla.splu(K.tocsc(), permc_spec="COLAMD")
-                self._p = None
-            else:
-                p = self.perm
-                self._lu = spla.splu(K[p][:, p].tocsc(), permc_spec="NATURAL",
-                                     diag_pivot_thresh=0.0 if self._level == 0 else 0.1, options={"SymmetricMode": True})
-                self._p = p
-        except RuntimeError as exc:  # exactly singular
-            if self._level < 2:
-                self._level += 1
-                return self._refactor_superlu()
-            raise SolverError(f"direct solver: stiffness matrix is singular ({exc}); check the boundary conditions") from None
-        self._definite = False  # SuperLU gives no inertia: Krylov reuse uses GMRES
-
-    def _factor_solve(self, r):
-        if self.engine == "pardiso":
-            return self._ldlt.solve(r)
-        if self._p is None:
-            return self._lu.solve(r)
-        x = np.empty_like(r)
-        x[self._p] = self._lu.solve(r[self._p])
-        return x
-
     def _accurate_solve(self, r):
-        """Factor solve with up to 3 steps of iterative refinement; escalate (SuperLU pivoting, or GMRES) if inaccurate."""
+        """Factor solve with up to 3 steps of iterative refinement; escalate (engine pivoting, or GMRES) if inaccurate."""
         rn = np.linalg.norm(r)
         while True:
-            x = self._factor_solve(r)
+            x = self.engine.solve(r)
             self.info["iterations"] = 1
             for _ in range(3):
                 if not np.all(np.isfinite(x)):
@@ -207,23 +141,18 @@ class DirectSolver(LinearSolver):
                 res = r - self._K @ x
                 if np.linalg.norm(res) <= 1e-10 * rn:
                     break
-                x = x + self._factor_solve(res)
+                x = x + self.engine.solve(res)
                 self.info["iterations"] += 1
             ok = np.all(np.isfinite(x)) and np.linalg.norm(r - self._K @ x) <= 1e-8 * rn
             if ok:
                 return x
-            if self.engine == "pardiso":  # perturbed pivots of a nearly singular tangent: Krylov on top
+            if not self.engine.escalate():  # perturbed pivots of a nearly singular tangent: Krylov on top
                 return self._krylov(self._K, r, 1e-10, x0=x if np.all(np.isfinite(x)) else None, gmres=True)[0]
-            if self._level >= 2:
-                return x
-            self._level += 1
-            _LOG.debug("LU was inaccurate (small pivots of an indefinite tangent); refactorising with pivoting level %d",
-                       self._level)
             self._refactor()
 
     def _krylov(self, A, r, rtol, x0=None, gmres=False):
         """Solve A x = r preconditioned by the kept factors; returns (x, iterations, converged)."""
-        M = spla.LinearOperator(A.shape, matvec=lambda v: self._factor_solve(np.asarray(v, float).ravel()))
+        M = spla.LinearOperator(A.shape, matvec=lambda v: self.engine.solve(np.asarray(v, float).ravel()))
         if not gmres:
             x, its, status = pcg(A, r, M, rtol, self.krylov_maxiter, x0=x0)
             return x, its, status == "converged"
@@ -240,11 +169,11 @@ class DirectSolver(LinearSolver):
     def prepare(self, system, state):
         """Factorise the tangent of ``state``, or (reuse) keep the factors and take the matrix-free tangent."""
         self.info["setup_s"] = 0.0
-        if self.reuse and self._factors in ("current", "reused"):
+        if self.policy.keep():
             self._system, self._state = system, state
             self._K = None
             self._op = system.tangent_operator(state)
-            self._factors = "reused"
+            self.policy.kept()
             return
         self._system = self._state = None
         t0 = time.perf_counter()
@@ -258,19 +187,19 @@ class DirectSolver(LinearSolver):
         self._K = K
         self._op = K
         self.info["setup_s"] = 0.0
-        if self._factors in ("none", "stale") or not self.reuse:
+        if self.policy.must_factorize():
             self._refactor()
         else:
-            self._factors = "reused"
+            self.policy.kept()
 
     def solve(self, r, rtol=None):
         t0 = time.perf_counter()
         setup0 = self.info["setup_s"]
         r = np.asarray(r, float)
         x = None
-        if self._factors != "current":
+        if not self.policy.exact:
             target = self.rtol if rtol is None else max(float(rtol), 1e-14)
-            x, its, ok = self._krylov(self._op, r, target, gmres=not self._definite)
+            x, its, ok = self._krylov(self._op, r, target, gmres=not self.engine.definite)
             self.info["iterations"] = its
             self.info["krylov_iterations"] += its
             if not ok:
@@ -282,8 +211,8 @@ class DirectSolver(LinearSolver):
                     self._assembly_s = time.perf_counter() - t1
                     self.info["setup_s"] += self._assembly_s
                 self._refactor()
-            elif its > self.krylov_maxiter // 2 or time.perf_counter() - t0 > 0.25 * self._factor_cost:
-                self._factors = "stale"  # refactorise at the next Newton iteration
+            else:
+                self.policy.solved(its, time.perf_counter() - t0)
         if x is None:
             x = self._accurate_solve(r)
         self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
@@ -291,8 +220,11 @@ class DirectSolver(LinearSolver):
             raise SolverError("direct solver returned non-finite values (singular stiffness)")
         return x
 
-
-@register("direct")
-def _make_direct(X, *, ijk=None, width=(4, 4, 4), rtol: float = 1e-10, reuse: bool = True, direct_engine: str = "auto",
-                 **_) -> DirectSolver:
-    return DirectSolver(reuse=reuse, rtol=rtol, ijk=ijk, width=width, engine=direct_engine)
+    def statistics(self) -> dict:
+        """Name, engine (``linear_engine``), ``factorizations``, ``krylov_iterations`` (with kept
+        factors) and, from PARDISO, ``factor_nnz`` (entries of L of the last factorisation)."""
+        out = super().statistics() | {"linear_engine": self.info["engine"], "factorizations": self.info["factorizations"],
+                                      "krylov_iterations": self.info["krylov_iterations"]}
+        if "factor_nnz" in self.info:
+            out["factor_nnz"] = int(self.info["factor_nnz"])
+        return out

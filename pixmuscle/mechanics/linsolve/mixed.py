@@ -39,7 +39,9 @@ Oxford University Press, 2014.
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from dataclasses import field
 
 import numpy as np
 import scipy.sparse as sp
@@ -47,8 +49,8 @@ import scipy.sparse as sp
 from ...errors import SolverError
 from ..tangent import MatrixFreeTangent
 from ..volumetric import shear_moduli
-from .base import register
-from .cg_amg import KrylovAMGSolver
+from .base import BACKENDS
+from .cg_amg import CGAMGOptions, KrylovAMGSolver
 from .fgmres import fgmres
 
 
@@ -114,6 +116,15 @@ class _BlockTriangular:
         return np.concatenate([x, q])
 
 
+@dataclasses.dataclass(frozen=True)
+class MixedAMGOptions(CGAMGOptions):
+    """Options of ``solve.solver: {backend: mixed_amg, …}``."""
+
+    schur_scale: float = field(default=0.5, metadata={"gt": 0, "doc": "c of the diagonal Schur complement diag(c/(μ_p V_p) + 1/(V_p K̄_p)): the typical eigenvalue of G K_d⁻¹ Gᵀ against the pressure mass"})
+    restart: int = field(default=60, metadata={"range": (1, None), "doc": "FGMRES basis size"})
+
+
+@BACKENDS.register("mixed_amg", options=MixedAMGOptions)
 class MixedBlockSolver(KrylovAMGSolver):
     """FGMRES on the mixed form of the projected-energy tangent (see the module docstring).
 
@@ -209,11 +220,4 @@ class MixedBlockSolver(KrylovAMGSolver):
                               "singular), or use solver.backend: direct on small models")
         self._account(total, rtol)
         return z[:n]
-
-
-@register("mixed_amg")
-def _make_mixed_amg(X, *, ijk=None, rtol: float = 1e-10, maxiter: int = 2000, **_) -> MixedBlockSolver:
-    if ijk is None:
-        raise ValueError("mixed_amg needs the voxel indices ijk of the nodes")
-    return MixedBlockSolver(X, ijk, rtol=rtol, maxiter=maxiter)
 

@@ -16,12 +16,14 @@ petsc4py is optional: ``make venv`` installs it on Debian/Ubuntu as root (README
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from dataclasses import field
 
 import numpy as np
 
 from ...errors import SolverError
-from .base import LinearSolver, register
+from .base import BACKENDS, Iterative, LinearSolver
 
 #: what to do when petsc4py is missing (config error of ``solve.solver.backend: petsc``)
 INSTALL_HINT = ("petsc4py is not installed: on Debian/Ubuntu run `make venv` as root (it installs libpetsc-real-dev "
@@ -70,6 +72,18 @@ def slab_partition(ijk: np.ndarray, parts: int) -> tuple[np.ndarray, np.ndarray]
     return order, np.maximum.accumulate(bounds)
 
 
+@dataclasses.dataclass(frozen=True)
+class PETScOptions(Iterative):
+    """Options of ``solve.solver: {backend: petsc, …}``."""
+
+    petsc_options: dict[str, str | float | bool] = field(default_factory=dict, metadata={"doc": "options for PETSc's options database, names without the dash (default ksp_type: gmres, pc_type: gamg; e.g. {ksp_type: minres, pc_type: hypre, ksp_monitor: true})"})
+
+    def __post_init__(self):
+        if not available():
+            raise ValueError(f"backend: petsc: {INSTALL_HINT}")
+
+
+@BACKENDS.register("petsc", options=PETScOptions)
 class PETScSolver(LinearSolver):
     """PETSc KSP on the distributed assembled tangent (see the module docstring).
 
@@ -113,6 +127,12 @@ class PETScSolver(LinearSolver):
         self._ksp = None
         self.info.update(krylov_iterations=0, preconditioner_builds=0, ranks=self.size,
                          owned_nodes=int(self.owned.size))
+
+    @classmethod
+    def from_options(cls, opts: PETScOptions, X, *, ijk=None, width=(4, 4, 4)) -> PETScSolver:
+        if ijk is None:
+            raise ValueError("petsc needs the voxel indices ijk of the nodes")
+        return cls(X, ijk, rtol=opts.rtol, maxiter=opts.maxiter, options=dict(opts.petsc_options))
 
     def prepare(self, system, state):
         PETSc = self.PETSc
@@ -170,10 +190,7 @@ class PETScSolver(LinearSolver):
         return x.reshape(np.shape(r))
 
 
-@register("petsc")
-def _make_petsc(X, *, ijk=None, rtol: float = 1e-10, maxiter: int = 2000, petsc_options=None, **_) -> PETScSolver:
-    if ijk is None:
-        raise ValueError("petsc needs the voxel indices ijk of the nodes")
-    if not available():
-        raise ValueError(INSTALL_HINT)
-    return PETScSolver(X, ijk, rtol=rtol, maxiter=maxiter, options=dict(petsc_options or {}))
+    def statistics(self) -> dict:
+        """Name, ``preconditioner_builds``, ``krylov_iterations`` (all solves) and ``ranks`` (MPI processes)."""
+        return super().statistics() | {"preconditioner_builds": self.info["preconditioner_builds"],
+                                       "krylov_iterations": self.info["krylov_iterations"], "ranks": self.size}
