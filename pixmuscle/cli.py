@@ -283,10 +283,11 @@ def run(
     start: str | None = typer.Option(None, "--from", help="First stage: segment, build-model, coarsen, solve, report."),
     until: str | None = typer.Option(None, "--until", help="Last stage."),
     workers: int | None = typer.Option(None, "--workers", min=0, help=(
-        "Run the cases on a local Dask cluster of N worker processes (0: one after the other in this process). "
-        "Default: serial for one case, a local cluster sized to the machine for several.")),
+        "Run the cases on a local Dask cluster of N worker processes (0: one after the other in this process), "
+        "instead of the config's execution section. Default: that section, else serial for one case and a local "
+        "cluster sized to the machine for several.")),
     scheduler: str | None = typer.Option(None, "--scheduler", help=(
-        "Address of an existing Dask scheduler (tcp://HOST:PORT); overrides execution.scheduler.")),
+        "Address of an existing Dask scheduler (tcp://HOST:PORT), instead of the config's execution section.")),
     allow_stale: bool = typer.Option(False, "--allow-stale", help=(
         "With --from: go on even when a file of an earlier stage was made under another config (else the "
         "run is refused, naming the key); the report then shows the mismatch at the top.")),

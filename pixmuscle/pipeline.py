@@ -3,6 +3,8 @@
 Root YAML keys (all optional except what the chosen stages need)::
 
     title: text shown in reports
+    plugins: [my_law.py]     # Python files (relative to this file) or module names imported first, so
+                             # that the laws, runners or report sections they register can be named
     synthetic: true          # inputs are synthetic phantoms (said plainly in the report)
     output_dir: out/demo     # relative to the config file; default out/<config stem>
     models: [coarse]         # which models to solve: fine, coarse or both (convergence check: the
@@ -19,9 +21,10 @@ Root YAML keys (all optional except what the chosen stages need)::
       - {name: young, build_model: {labels: young_labels.nii.gz}}
     study:                   # optional parameter study (pixmuscle.study): every combination × subject
       vary: {solve.materials.muscle.sigma_max: [20, 25, 30]}
-    execution:               # optional: where the cases run (command-line options override it)
-      scheduler: tcp://host:8786   # an existing Dask cluster
-      workers: 4                   # or a local cluster of 4 worker processes (0: in this process)
+    execution:               # optional: where the cases run (pixmuscle.runners; --workers/--scheduler replace it)
+      kind: dask                   # a registered runner: serial (this process) or dask
+      workers: 4                   # its options: a local cluster of 4 worker processes,
+      scheduler: tcp://host:8786   # or an existing Dask cluster
 
 A *case* is one subject with one combination of the study's values. Its stages are described by
 :func:`pixmuscle.plan.plan_case` and executed by :mod:`pixmuscle.runners.serial` (in this process)
@@ -65,9 +68,9 @@ SECTIONS = {
     "force_length": ("pixmuscle.mechanics.experiments", "ForceLengthConfig"),
     "report": ("pixmuscle.report.config", "ReportConfig"),
 }
-_ROOT_KEYS = {"title", "synthetic", "output_dir", "models", "subjects", "study", "execution", *SECTIONS}
+_ROOT_KEYS = {"title", "synthetic", "output_dir", "models", "subjects", "study", "execution", "plugins", *SECTIONS}
 #: keys a subject entry may override (besides its name)
-_SUBJECT_KEYS = _ROOT_KEYS - {"subjects", "output_dir", "study", "execution"}
+_SUBJECT_KEYS = _ROOT_KEYS - {"subjects", "output_dir", "study", "execution", "plugins"}
 #: folder of the per-combination cohort pages of a study (not allowed as a subject name)
 STUDY_COHORTS = "study_cohorts"
 
@@ -78,7 +81,8 @@ class PipelineConfig:
 
     ``name`` is unique within a run: the subject name, followed by ``/<case>`` in a study.
     ``shared_dir`` (studies only) holds the stages the study does not vary; ``params`` the
-    (key, value) pairs of the study combination.
+    (key, value) pairs of the study combination; ``plugins`` the source files of the config's
+    plugins (:func:`pixmuscle.plugins.load_plugins`).
     """
 
     name: str
@@ -99,6 +103,7 @@ class PipelineConfig:
     params: tuple = ()
     shared_dir: Path | None = None
     study_sections: frozenset = frozenset()
+    plugins: tuple = ()
 
     def varied_sections(self) -> frozenset:
         """Config sections a study varies, plus every section downstream of the first of them."""
@@ -137,10 +142,9 @@ class RunConfig:
     cohort : bool
         True when the config has a ``subjects`` list.
     study : Study or None
-    scheduler : str or None
-        ``execution.scheduler`` (address of an existing Dask scheduler).
-    workers : int or None
-        ``execution.workers``.
+    execution : runner dataclass or None
+        The ``execution`` section (:func:`pixmuscle.runners.parse_execution`), e.g.
+        :class:`pixmuscle.runners.dask.Dask`; None when the config has none.
     """
 
     path: Path
@@ -149,8 +153,7 @@ class RunConfig:
     subjects: tuple
     cohort: bool
     study: Study | None = None
-    scheduler: str | None = None
-    workers: int | None = None
+    execution: Any = None
 
 
 def _section_class(name: str):
@@ -225,22 +228,6 @@ def _check_subject_name(path: Path, i: int, name: Any, seen: dict) -> str:
     return name
 
 
-def _parse_execution(raw: Any, path: Path) -> tuple[str | None, int | None]:
-    if raw is None:
-        return None, None
-    if not isinstance(raw, dict):
-        raise InputError(f"{path}: execution: expected a mapping with 'scheduler' and/or 'workers'")
-    bad = sorted(set(raw) - {"scheduler", "workers"})
-    if bad:
-        raise InputError(f"{path}: execution.{bad[0]}: unknown key; expected 'scheduler' or 'workers'")
-    sched, workers = raw.get("scheduler"), raw.get("workers")
-    if sched is not None and not isinstance(sched, str):
-        raise InputError(f"{path}: execution.scheduler: expected an address such as tcp://host:8786, got {sched!r}")
-    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
-        raise InputError(f"{path}: execution.workers: expected a whole number >= 0, got {workers!r}")
-    return sched, workers
-
-
 def load_run(path: str | Path, *, strict: bool = True, overrides=(), output_dir: str | Path | None = None,
              subject: str | None = None) -> RunConfig:
     """Read and validate a pipeline YAML into its cases.
@@ -269,6 +256,9 @@ def load_run(path: str | Path, *, strict: bool = True, overrides=(), output_dir:
         close = difflib.get_close_matches(unknown[0], sorted(_ROOT_KEYS), n=1)
         hint = f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(sorted(_ROOT_KEYS))}"
         raise InputError(f"{path}: {unknown[0]}: unknown top-level key{hint}")
+    from .plugins import load_plugins
+
+    plugins = load_plugins(raw.get("plugins"), path)  # before any section names what they register
     base_dir = path.parent.resolve()
     if output_dir is not None:
         root = Path(output_dir).resolve()
@@ -277,7 +267,9 @@ def load_run(path: str | Path, *, strict: bool = True, overrides=(), output_dir:
     else:
         root = (Path.cwd() / "out" / path.stem).resolve()
     study = parse_study(raw.get("study"), set(SECTIONS), f"{path}: study")
-    scheduler, workers = _parse_execution(raw.get("execution"), path)
+    from .runners import parse_execution
+
+    execution = parse_execution(raw.get("execution"), f"{path}: execution")
     common = {k: v for k, v in raw.items() if k in _SUBJECT_KEYS}
     subjects = raw.get("subjects")
     if subjects is None:
@@ -327,7 +319,7 @@ def load_run(path: str | Path, *, strict: bool = True, overrides=(), output_dir:
                 for key, value in params:
                     merged = set_key(merged, key, value, f"{path}: study.vary")
                 extra = dict(info, shared_dir=subj_dir if study else None,
-                             study_sections=study.sections if study else frozenset())
+                             study_sections=study.sections if study else frozenset(), plugins=plugins)
                 cases.append(_parse_case(merged, case_name, where, base_dir, out_dir, **extra))
             except InputError as exc:
                 if base_ok:  # the subject is valid without the study's values: the study is at fault
@@ -337,7 +329,7 @@ def load_run(path: str | Path, *, strict: bool = True, overrides=(), output_dir:
                 msg = f"{exc} (study case {cname})" if cname else str(exc)
                 cases.append(SubjectError(case_name, msg, out_dir, **info))
     return RunConfig(path, root, cases, tuple(e[0] for e in entries), subjects is not None and subject is None, study,
-                     scheduler, workers)
+                     execution)
 
 
 def _check_study(study: Study, n_subjects: int, path: Path, base_dir: Path) -> None:
@@ -394,12 +386,12 @@ def run_subject(cfg: PipelineConfig, *, force: bool = False, start: str | None =
     """
     from .outdir import hold_folders
     from .preflight import check_case, stage_folders
-    from .runners.serial import run_serial
+    from .runners.serial import Serial
 
     stages = _check_upstream(cfg, plan_case(cfg, start, until), start, allow_stale, "CONFIG")
     check_case(cfg, stages)
     with hold_folders(stage_folders(stages) | {cfg.output_dir}):
-        outcome = run_serial({cfg.name: stages}, force=force, raise_errors=True)[cfg.name]
+        outcome = Serial().run({cfg.name: stages}, force=force, raise_errors=True)[cfg.name]
     return _case_summary(cfg, outcome)
 
 
@@ -415,11 +407,11 @@ def run_pipeline(path: str | Path, *, force: bool = False, start: str | None = N
     force, start, until
         As ``pixmuscle run --force --from --until``.
     workers : int, optional
-        Run on a local Dask cluster of this many worker processes (0: serially in this process).
-        Default: ``execution.workers``, else serial for one case and a local cluster sized to the
-        machine for several.
+        Run on a local Dask cluster of this many worker processes (0: serially in this process),
+        instead of the config's ``execution`` section. Default: that section, else serial for one
+        case and a local cluster sized to the machine for several.
     scheduler : str, optional
-        Address of an existing Dask scheduler (``tcp://host:port``); default ``execution.scheduler``.
+        Address of an existing Dask scheduler (``tcp://host:port``), instead of ``execution``.
     overrides, output_dir, subject
         As ``pixmuscle run --set``, ``-o`` and ``--subject`` (see :func:`load_run`).
     allow_stale : bool
@@ -468,9 +460,8 @@ def run_cases(path: str | Path, *, force: bool = False, start: str | None = None
         folders.add(run.root_dir)
     with hold_folders(folders):  # one run at a time in these folders
         progress = Progress([c.name for c in cases if c.name in plans])
-        runner = choose_runner(len(plans), workers=workers if workers is not None else run.workers,
-                               scheduler=scheduler or run.scheduler)
-        outcomes = runner(plans, force=force, progress=progress, raise_errors=len(cases) == 1)
+        runner = choose_runner(run.execution, len(plans), workers=workers, scheduler=scheduler)
+        outcomes = runner.run(plans, force=force, progress=progress, raise_errors=len(cases) == 1)
         summaries = []
         for c in cases:
             if c.name in failures:

@@ -74,6 +74,9 @@ class Stage:
         stage: the report of the converged steps must replace the report of an older run).
     config_dir : Path, optional
         Folder of the config file: the output's provenance gives input paths relative to it too.
+    plugins : tuple of Path
+        Plugin files (:mod:`pixmuscle.plugins`) the stage depends on: imported before it runs and
+        recorded among its inputs.
     """
 
     kind: str
@@ -85,6 +88,7 @@ class Stage:
     inputs: tuple = ()
     on_failure: Any = None
     config_dir: Path | None = None
+    plugins: tuple = ()
 
     @property
     def schema(self) -> tuple[str, int] | None:
@@ -139,13 +143,15 @@ def execute_stage(stage: Stage, force: bool = False) -> str:
     """
     if not force and is_up_to_date(stage):
         return "skipped"
-    from .store import config_folder
+    from .plugins import import_plugins
+    from .store import config_folder, plugin_inputs
 
+    import_plugins(stage.plugins)
     module, func = stage.action.split(":")
     # the report folder itself is put in place as a unit by the stage (never created empty here)
     (stage.output.parent.parent if stage.kind == "report" else stage.output.parent).mkdir(parents=True, exist_ok=True)
     try:
-        with config_folder(stage.config_dir):
+        with config_folder(stage.config_dir), plugin_inputs(stage.plugins):
             getattr(importlib.import_module(module), func)(**stage.kwargs)
     except SolverError as exc:
         if stage.on_failure is not None:
@@ -477,7 +483,20 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
         # a failed solve still gets its report (converged steps, reason), never an older run's
         stages = [dataclasses.replace(st, on_failure=report) if st.kind == "solve" else st for st in stages]
         stages.append(report)
-    return [dataclasses.replace(st, config_dir=getattr(cfg, "base_dir", None)) for st in stages]
+    return [_with_plugins(dataclasses.replace(st, config_dir=getattr(cfg, "base_dir", None)), getattr(cfg, "plugins", ()))
+            for st in stages]
+
+
+#: stages that depend on the config's plugins (a material law: the solve and everything computed from it)
+PLUGIN_STAGES = ("solve", "muscle-forces", "force-length", "report")
+
+
+def _with_plugins(stage: Stage, plugins: tuple) -> Stage:
+    """``stage`` with the plugin files among its inputs when its kind is one of :data:`PLUGIN_STAGES`."""
+    if not plugins or stage.kind not in PLUGIN_STAGES:
+        return stage
+    failure = stage.on_failure and _with_plugins(stage.on_failure, plugins)
+    return dataclasses.replace(stage, inputs=(*stage.inputs, *plugins), plugins=tuple(plugins), on_failure=failure)
 
 
 def _experiment_stages(cfg: Any, which: str, mpath: Path, rpath: Path, stages: list | None) -> dict[str, Path]:

@@ -101,6 +101,21 @@ def config_folder(path: str | os.PathLike | None) -> Iterator[None]:
         _CONFIG_DIR.reset(token)
 
 
+#: plugin files of the stage being written (recorded among its inputs)
+_PLUGINS: contextvars.ContextVar[tuple] = contextvars.ContextVar("pixmuscle_plugins", default=())
+
+
+@contextlib.contextmanager
+def plugin_inputs(files: Sequence[str | os.PathLike]) -> Iterator[None]:
+    """Within this block, stage files record the SHA-256 of these plugin files among their inputs
+    (:mod:`pixmuscle.plugins`), so that a changed plugin makes the stage out of date."""
+    token = _PLUGINS.set(tuple(files))
+    try:
+        yield
+    finally:
+        _PLUGINS.reset(token)
+
+
 @functools.lru_cache(maxsize=1)
 def source_commit() -> dict | None:
     """Git commit of the pixmuscle source tree, when the package runs from a git checkout.
@@ -185,9 +200,10 @@ def provenance(inputs: Sequence[str | os.PathLike] = (), config: Any = None) -> 
     Keys: ``package``, ``version``, ``git`` (:func:`source_commit`), ``libraries``
     (:func:`library_versions`), ``created_utc``, ``argv``, ``python``, ``inputs`` (absolute path →
     SHA-256), ``config_dir`` and ``inputs_relative`` (path relative to the config file's folder →
-    SHA-256; only inside :func:`config_folder`), ``config_sha256``.
+    SHA-256; only inside :func:`config_folder`), ``config_sha256``. The plugin files of
+    :func:`plugin_inputs` are inputs too.
     """
-    hashes = {str(Path(p)): sha256_file(p) for p in inputs}
+    hashes = {str(Path(p)): sha256_file(p) for p in (*inputs, *_PLUGINS.get())}
     rec = {
         "package": "pixmuscle",
         "version": __version__,

@@ -3,10 +3,17 @@
 A block of fat under uniaxial strain (rollers on every face, the top face displaced): the
 deformation is homogeneous, F = diag(1, 1, λ), so the end force is the closed form of the
 compressible neo-Hookean law, R = A0 [μ (λ − 1/λ) + λ_L ln λ / λ], and the law's tangent is
-checked against finite differences of its stress.
+checked against finite differences of its stress. The same law, written beside a config that
+names it in ``plugins``, runs through the ``pixmuscle`` executable; its file is part of the solve's
+lineage.
 """
 
 from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -18,6 +25,7 @@ from pixmuscle.errors import InputError
 from pixmuscle.imaging.nifti import save_volume
 from pixmuscle.mechanics.materials import LAWS, material_from_config
 from pixmuscle.pipeline import load_subjects, run_subject
+from pixmuscle.plan import is_up_to_date, plan_case
 
 MU, LAM = 4.0, 30.0
 SHAPE, H = (3, 3, 5), (0.2, 0.2, 0.3)  # voxels, cm
@@ -69,11 +77,8 @@ def _run(tmp_path, cfg) -> dict:
     return run_subject(load_subjects(path)[0], until="solve")
 
 
-def test_new_law_through_the_pipeline_matches_closed_form(tmp_path):
-    cfg = _config(tmp_path, {"fat": {"law": "neo_hooke", "mu": MU, "lam": LAM}})
-    summary = _run(tmp_path, cfg)
-    assert "solve (fine)" in summary["ran"]
-    with h5py.File(tmp_path / "out" / "results_fine.h5") as f:
+def _check_closed_form(results: Path) -> None:
+    with h5py.File(results) as f:
         r_top = f["steps/reaction/z_max"][()][:, 2]
         r_bottom = f["steps/reaction/z_min"][()][:, 2]
         u = f["steps/u"][-1]
@@ -86,6 +91,62 @@ def test_new_law_through_the_pipeline_matches_closed_form(tmp_path):
     # the displacement is the homogeneous field u = (0, 0, (λ − 1)(Z − z0)), z0 the bottom face
     z0 = X[:, 2].min() - H[2] / 2  # the ends are held on their cell faces
     np.testing.assert_allclose(u[:, 2], (STRETCH - 1.0) * (X[:, 2] - z0), atol=2e-3 * (STRETCH - 1.0) * np.ptp(X[:, 2]))
+
+
+def test_new_law_through_the_pipeline_matches_closed_form(tmp_path):
+    cfg = _config(tmp_path, {"fat": {"law": "neo_hooke", "mu": MU, "lam": LAM}})
+    summary = _run(tmp_path, cfg)
+    assert "solve (fine)" in summary["ran"]
+    _check_closed_form(tmp_path / "out" / "results_fine.h5")
+
+
+def _pixmuscle(*args) -> subprocess.CompletedProcess:
+    """The installed ``pixmuscle`` executable (this checkout first on the path)."""
+    import pixmuscle
+
+    exe = Path(sys.executable).with_name("pixmuscle")
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "pixmuscle.cli"]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(pixmuscle.__file__).parents[1]),
+                                                        os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([*cmd, *map(str, args)], capture_output=True, text=True, env=env, timeout=300)
+
+
+def test_plugin_law_through_the_cli_matches_closed_form(tmp_path):
+    """The law file and a config naming it in `plugins`, run by `pixmuscle run`; a changed law file
+    makes the solve out of date."""
+    law = tmp_path / "laws" / "my_fat.py"  # registered under its own name: no clash with neo_hooke in this process
+    law.parent.mkdir()
+    law.write_text(Path(__file__).with_name("neo_hooke_law.py").read_text().replace('"neo_hooke"', '"my_fat"'))
+    cfg = {"plugins": ["laws/my_fat.py"], **_config(tmp_path, {"fat": {"law": "my_fat", "mu": MU, "lam": LAM}})}
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    done = _pixmuscle("-q", "run", path, "--until", "solve")
+    assert done.returncode == 0, done.stderr
+    results = tmp_path / "out" / "results_fine.h5"
+    assert done.stdout.split() == [str(results)]
+    _check_closed_form(results)
+    # lineage: the law file is an input of the solve
+    solve = next(st for st in plan_case(load_subjects(path)[0], until="solve") if st.kind == "solve")
+    assert law.resolve() in solve.inputs and is_up_to_date(solve)
+    law.write_text(law.read_text() + "\n# edited\n")
+    assert not is_up_to_date(solve)
+
+
+@pytest.mark.parametrize("plugins,text,message", [
+    (["missing.py"], None, r"plugins\[0\]: .*missing.py: plugin file not found"),
+    (["bad.py"], "raise RuntimeError('no such constant')",
+     r"plugins\[0\]: cannot import .*bad.py: RuntimeError: no such constant"),
+    (["no_such_module_xyz"], None, r"plugins\[0\]: cannot import module 'no_such_module_xyz': ModuleNotFoundError"),
+    ("bad.py", None, r"plugins: expected a list of Python files or module names"),
+])
+def test_bad_plugin_is_one_line_naming_key_and_file(tmp_path, plugins, text, message):
+    if text is not None:
+        (tmp_path / "bad.py").write_text(text)
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump({"plugins": plugins, **_config(tmp_path, {})}))
+    with pytest.raises(InputError, match=message) as exc:
+        load_subjects(path)
+    assert "\n" not in str(exc.value) and str(path) in str(exc.value)
 
 
 def test_law_without_volumetric_split_refuses_the_projection(tmp_path):

@@ -121,12 +121,30 @@ def test_study_values_are_checked_before_any_case(tmp_path):
 
 
 def test_execution_section(tmp_path):
+    """`execution: {kind, …options}` is validated by the runner's own dataclass; the short form of the
+    command-line options ({workers}, {scheduler}) still works."""
+    from pixmuscle.runners import choose_runner
+    from pixmuscle.runners.dask import Dask
+    from pixmuscle.runners.serial import Serial
+
     p = _labels_config(tmp_path, execution={"scheduler": "tcp://127.0.0.1:8786", "workers": 2})
-    run = load_run(p)
-    assert run.scheduler == "tcp://127.0.0.1:8786" and run.workers == 2
-    p = _labels_config(tmp_path, execution={"workers": -1})
-    with pytest.raises(InputError, match="execution.workers"):
-        load_run(p)
+    assert load_run(p).execution == Dask(workers=2, scheduler="tcp://127.0.0.1:8786")
+    p = _labels_config(tmp_path, execution={"kind": "dask", "workers": 3})
+    assert load_run(p).execution == Dask(workers=3)
+    for short in ({"workers": 0}, {"kind": "serial"}):
+        assert load_run(_labels_config(tmp_path, execution=short)).execution == Serial()
+    assert load_run(_labels_config(tmp_path)).execution is None
+    # the command line replaces the section; without either, one case runs serially, several on a local cluster
+    assert choose_runner(Serial(), 4, workers=2) == Dask(workers=2)
+    assert choose_runner(Dask(workers=3), 4, workers=0) == Serial()
+    assert choose_runner(Serial(), 4, scheduler="tcp://h:1") == Dask(scheduler="tcp://h:1")
+    assert choose_runner(None, 1) == Serial() and isinstance(choose_runner(None, 3), Dask)
+    for bad, message in [({"workers": -1}, r"execution.workers: expected a value ≥ 1, got -1"),
+                         ({"kind": "serial", "workers": 2}, r"execution.workers: unknown key"),
+                         ({"kind": "slurm"}, r"execution.kind: unknown runner 'slurm'; expected one of dask, serial"),
+                         ({"kind": "dask", "schedular": "x"}, r"execution.schedular: unknown key.*did you mean 'scheduler'")]:
+        with pytest.raises(InputError, match=message):
+            load_run(_labels_config(tmp_path, execution=bad))
 
 
 def test_report_layer_does_not_import_the_stages_layer():

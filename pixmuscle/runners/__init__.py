@@ -1,9 +1,14 @@
 """Runners: execute the stage chains of :func:`pixmuscle.plan.plan_case`, serially or on Dask.
 
-Every runner is a function ``run(plans, *, force, progress, raise_errors) -> {case: CaseOutcome}``
-where ``plans`` maps a case name to its list of :class:`~pixmuscle.plan.Stage`. A stage output that
-several cases share (a study's segmentation, say) is produced once. A failing case is reported in
-its outcome and the other cases go on (``raise_errors=True``: the first error propagates instead).
+A runner is one module of this package registering itself in :data:`RUNNERS`: a frozen dataclass
+of its options (the config section ``execution: {kind: <name>, …options}``) with a method
+``run(plans, *, force, progress, raise_errors) -> {case: CaseOutcome}`` where ``plans`` maps a
+case name to its list of :class:`~pixmuscle.plan.Stage`. A stage output that several cases share
+(a study's segmentation, say) is produced once. A failing case is reported in its outcome and the
+other cases go on (``raise_errors=True``: the first error propagates instead).
+
+Runners of pixmuscle: ``serial`` (:class:`~.serial.Serial`, in this process) and ``dask``
+(:class:`~.dask.Dask`, a local or an existing ``dask.distributed`` cluster).
 """
 
 from __future__ import annotations
@@ -13,7 +18,10 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from ..registry import Registry
 
 _LOG = logging.getLogger("pixmuscle.runners")
 
@@ -118,23 +126,49 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
-def choose_runner(n_cases: int, *, workers: int | None = None, scheduler: str | None = None) -> Callable:
-    """The runner for a run: Dask when a scheduler or workers ≥ 1 are given, or by default for
-    several cases (a local cluster sized to the machine); serial for one case or ``workers=0``."""
-    import functools
+def parse_execution(data: Any, where: str = "execution"):
+    """The runner of an ``execution`` section: ``{kind: <name>, …options}`` → that runner's dataclass.
 
-    if scheduler:
-        from .dask import run_dask
+    A mapping without ``kind`` is the short form of the command-line options: ``{workers: 0}`` is
+    the serial runner, ``{workers: N}`` and/or ``{scheduler: ADDRESS}`` the Dask runner. ``None``
+    (no section) stays ``None``: :func:`choose_runner` then picks by the number of cases.
 
-        return functools.partial(run_dask, scheduler=scheduler)
-    if workers == 0 or (workers is None and n_cases <= 1):
-        from .serial import run_serial
+    Raises
+    ------
+    InputError
+        Naming the key path (``execution.workers: expected a value ≥ 1, got -1``).
+    """
+    if data is None:
+        return None
+    if isinstance(data, Mapping) and RUNNERS.key not in data:
+        data = {"kind": "serial"} if dict(data) == {"workers": 0} else {"kind": "dask", **data}
+    return RUNNERS.parse(data, where)
 
-        return run_serial
-    from .dask import run_dask
 
-    n = workers if workers is not None else max(1, min(n_cases, available_cores()))
-    return functools.partial(run_dask, workers=n)
+def choose_runner(execution: Any, n_cases: int, *, workers: int | None = None, scheduler: str | None = None):
+    """The runner of a run: the command-line options, else the ``execution`` section, else serial
+    for one case and a local Dask cluster sized to the machine for several.
+
+    Parameters
+    ----------
+    execution : runner dataclass or None
+        :func:`parse_execution` of the config's section.
+    n_cases : int
+    workers, scheduler : optional
+        ``pixmuscle run --workers/--scheduler``: the short form of :func:`parse_execution`, which
+        replaces the config's section (with both, the scheduler's cluster is used).
+    """
+    if workers is not None or scheduler is not None:
+        opts = {"scheduler": scheduler} if scheduler else {"workers": workers}
+        return parse_execution(opts, "command line")
+    if execution is not None:
+        return execution
+    return parse_execution({"workers": 0 if n_cases <= 1 else max(1, min(n_cases, available_cores()))})
 
 
-__all__ = ["CaseOutcome", "Progress", "choose_runner", "error_message", "available_cores"]
+#: Registered runners (name → entry); ``execution.kind`` names one.
+RUNNERS = Registry("runner", key="kind", package=__name__)
+RUNNERS.discover()
+
+__all__ = ["RUNNERS", "CaseOutcome", "Progress", "choose_runner", "parse_execution", "error_message",
+           "available_cores"]

@@ -16,14 +16,17 @@ message saying so. On an existing cluster the number of retries is the scheduler
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
+import pickle
 import time
 import uuid
 from collections.abc import Iterator
+from dataclasses import field
 from pathlib import Path
 
 from ..plan import Stage, execute_stage
-from . import CaseOutcome, Progress, available_cores, error_message
+from . import RUNNERS, CaseOutcome, Progress, available_cores, error_message
 
 _LOG = logging.getLogger("pixmuscle.runners")
 
@@ -60,13 +63,19 @@ def local_cluster(n_workers: int) -> Iterator[str]:
         cluster.close()
 
 
-def _stage_task(stage: Stage, force: bool, case: str, upstream: list | None = None) -> list:
-    """Worker side: announce the stage, run it (or skip it).
+def _stage_task(plugins: tuple, blob: bytes, force: bool, case: str, upstream: list | None = None) -> list:
+    """Worker side: import the config's plugin files, unpickle the stage, announce it, run it (or skip it).
 
+    The stage comes pickled (``blob``) so that it is unpickled only once the plugins it may refer
+    to (a material law of a plugin file, say) are imported in this worker process.
     Returns the (label, "ran" | "skipped") pairs of the chain so far, so that the client needs
     only the last task of a case. An exception leaves with the stage label attached
     (``pixmuscle_stage``) so that the client can say which stage failed.
     """
+    from ..plugins import import_plugins
+
+    import_plugins(plugins)
+    stage = pickle.loads(blob)  # noqa: S301 - the client's own stage
     try:
         from distributed import get_worker
 
@@ -81,35 +90,49 @@ def _stage_task(stage: Stage, force: bool, case: str, upstream: list | None = No
     return [*(upstream or []), (stage.label, state)]
 
 
-def run_dask(plans: dict[str, list[Stage]], *, force: bool = False, progress: Progress | None = None,
-             raise_errors: bool = False, workers: int | None = None, scheduler: str | None = None
-             ) -> dict[str, CaseOutcome]:
-    """Run the cases on a Dask cluster.
+@RUNNERS.register("dask")
+@dataclasses.dataclass(frozen=True)
+class Dask:
+    """The cases in parallel on a Dask cluster (``execution: {kind: dask, workers: 4}``).
 
     Parameters
     ----------
-    plans : dict
-        Case name → its stages in order (:func:`pixmuscle.plan.plan_case`).
-    force : bool
-        Run stages even when their outputs are up to date.
-    progress : Progress, optional
-    raise_errors : bool
-        Re-raise the first case's error (single-case runs).
     workers : int, optional
-        Size of the local cluster started for this run (ignored with ``scheduler``).
+        Size of the local cluster started for the run (default: the machine's cores); ignored
+        with ``scheduler``.
     scheduler : str, optional
         Address of an existing scheduler, e.g. ``tcp://10.0.0.5:8786``.
-
-    Returns
-    -------
-    dict
-        Case name → :class:`CaseOutcome`.
     """
-    progress = progress or Progress(list(plans))
-    if scheduler:
-        return _run_on(scheduler, plans, force, progress, raise_errors)
-    with local_cluster(workers or available_cores()) as address:
-        return _run_on(address, plans, force, progress, raise_errors)
+
+    workers: int | None = field(default=None, metadata={
+        "range": (1, None), "doc": "worker processes of a local cluster started for the run (default: the cores)"})
+    scheduler: str | None = field(default=None, metadata={
+        "doc": "address of an existing Dask scheduler, e.g. tcp://host:8786"})
+
+    def run(self, plans: dict[str, list[Stage]], *, force: bool = False, progress: Progress | None = None,
+            raise_errors: bool = False) -> dict[str, CaseOutcome]:
+        """Run the cases on the cluster.
+
+        Parameters
+        ----------
+        plans : dict
+            Case name → its stages in order (:func:`pixmuscle.plan.plan_case`).
+        force : bool
+            Run stages even when their outputs are up to date.
+        progress : Progress, optional
+        raise_errors : bool
+            Re-raise the first case's error (single-case runs).
+
+        Returns
+        -------
+        dict
+            Case name → :class:`CaseOutcome`.
+        """
+        progress = progress or Progress(list(plans))
+        if self.scheduler:
+            return _run_on(self.scheduler, plans, force, progress, raise_errors)
+        with local_cluster(self.workers or available_cores()) as address:
+            return _run_on(address, plans, force, progress, raise_errors)
 
 
 def _run_on(address: str, plans, force, progress, raise_errors) -> dict[str, CaseOutcome]:
@@ -135,7 +158,8 @@ def _run_on(address: str, plans, force, progress, raise_errors) -> dict[str, Cas
                 nxt = tasks.get(stage.output)
                 if nxt is None:
                     key = f"{name}:{stage.label}:{tag}-{len(tasks)}"
-                    nxt = client.submit(_stage_task, stage, force, name, fut, key=key, pure=False)
+                    nxt = client.submit(_stage_task, stage.plugins, pickle.dumps(stage), force, name, fut, key=key,
+                                        pure=False)
                     tasks[stage.output], labels[key] = nxt, stage.label
                 fut = nxt
             if fut is None:
