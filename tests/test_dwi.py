@@ -141,7 +141,7 @@ def test_segment_stage_dwi_sample_matches_the_phantom_tensors(tmp_path):
     assert np.median(ang) < 5.0
     for name in ("dwi_fa.nii.gz", "dwi_md.nii.gz", "dwi_v1.nii.gz", "dwi_maps.png", "dwi_summary.json"):
         assert (tmp_path / "qc" / name).is_file()
-    from pixmuscle.report.dwi import dwi_section
+    from pixmuscle.report.sections.dwi import dwi_section
 
     html = "".join(dwi_section(tmp_path / "qc"))
     assert "Diffusion data (DWI tensor fit)" in html and "fsl" in html and "data:image/png" in html

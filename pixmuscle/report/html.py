@@ -310,8 +310,8 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
     report_config : mapping
         The report section as plain data.
     sections : list of str
-        Further HTML fragments (:func:`pixmuscle.stages.report_experiments.experiment_sections`:
-        force by muscle, force–length, DWI fit), placed before the solver statistics.
+        Further HTML fragments (the per-model comparison and the registered sections of
+        :mod:`pixmuscle.report.sections`), placed before the solver statistics.
     """
     from .summary import newton_table
 

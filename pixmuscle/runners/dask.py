@@ -111,23 +111,8 @@ class Dask:
 
     def run(self, plans: dict[str, list[Stage]], *, force: bool = False, progress: Progress | None = None,
             raise_errors: bool = False) -> dict[str, CaseOutcome]:
-        """Run the cases on the cluster.
-
-        Parameters
-        ----------
-        plans : dict
-            Case name → its stages in order (:func:`pixmuscle.plan.plan_case`).
-        force : bool
-            Run stages even when their outputs are up to date.
-        progress : Progress, optional
-        raise_errors : bool
-            Re-raise the first case's error (single-case runs).
-
-        Returns
-        -------
-        dict
-            Case name → :class:`CaseOutcome`.
-        """
+        """Run the cases on the cluster; parameters and result as :meth:`pixmuscle.runners.serial.Serial.run`
+        (``raise_errors``: the first case's error is re-raised, unless its worker died)."""
         progress = progress or Progress(list(plans))
         if self.scheduler:
             return _run_on(self.scheduler, plans, force, progress, raise_errors)

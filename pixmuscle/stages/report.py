@@ -33,10 +33,10 @@ from ..report.config import ReportConfig
 from ..report.curves import _cell, force_table, write_csv
 from ..report.displacement import displacement_csv, read_reference_curve, reference_entry
 from ..report.figures import Context, field_step, make_figures
+from ..report.sections import ReportInputs, render
 from ..report.summary import compute_summary
 from ..report.tables import table_csv_rows
 from ..store import _plain, sha256_file
-from .report_experiments import experiment_sections
 
 _LOG = logging.getLogger(__name__)
 
@@ -83,8 +83,9 @@ def make_report(results_path: str | Path, outdir: str | Path, cfg: ReportConfig 
     extra : dict, optional
         Run information from the caller: ``title``, ``subject`` (or ``label``), ``synthetic``
         (bool), ``compare`` (label → other results.h5 whose end force is overlaid, e.g. the coarse
-        and fine models), ``curves`` (label → (alpha, force) overlaid as given). Everything in it
-        is shown on the page.
+        and fine models), ``curves`` (label → (alpha, force) overlaid as given), the files of the
+        report sections (``muscle_forces``, ``force_length``, ``dwi_qc``: see
+        :class:`~pixmuscle.report.sections.ReportInputs`). Everything in it is shown on the page.
 
     Returns
     -------
@@ -127,8 +128,8 @@ def _write_report(res, results_path: Path, outdir: Path, final: Path, cfg: Repor
         _reference(summary, cfg)
         header, rows = displacement_csv(header, rows, summary)
         out["force_displacement_csv"] = str(write_csv(outdir / "force_displacement.csv", header, rows))
-    # per-muscle forces, force-length, DWI: fills the tissue table's per-muscle F_max
-    sections = experiment_sections(extra, outdir, summary, tissue, dpi=cfg.dpi, activation=res.info.get("activation"))
+    # the registered sections (activation, per-muscle forces, force-length, DWI): fills the tissue table's per-muscle F_max
+    sections = render(ReportInputs.build(res, extra, summary, tissue, outdir, cfg.dpi))
     if by_activation:
         out["tissue_table_csv"] = str(write_csv(outdir / "tissue_table.csv", tissue["header"], table_csv_rows(tissue)))
 

@@ -2,12 +2,24 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
-from .html import esc, img_tag, kv_table
+from ..html import esc, img_tag, kv_table
+from . import SECTIONS
 
-__all__ = ["dwi_section"]
+__all__ = ["DwiFit", "dwi_section"]
+
+
+@SECTIONS.register("dwi", inputs=("dwi_qc",), order=40)
+@dataclasses.dataclass(frozen=True)
+class DwiFit:
+    """The scanner DWI tensor fit of the segmentation: its numbers and FA/MD/V1 maps; no options."""
+
+    def html(self, dwi_qc: Path | None) -> list[str]:
+        """:func:`dwi_section` of the QC folder; empty without one."""
+        return [] if dwi_qc is None else dwi_section(dwi_qc)
 
 
 def dwi_section(qc_dir) -> list[str]:
