@@ -204,3 +204,20 @@ def test_cli_workers_option(phantoms, tmp_path):
     res = CliRunner().invoke(app, ["-q", "run", str(cfg), "--workers", "2"])
     assert res.exit_code == 0, res.output
     assert len(_rows(tmp_path / "cli" / "cohort.csv")) == 2
+
+
+def test_plugin_law_on_the_workers(tmp_path, cluster):
+    """A material law of a plugin file (config `plugins`) is imported by each worker before it unpickles a
+    stage: both cases of a cohort on the cluster give the law's closed-form force."""
+    from test_material_law_plugin import LAM, MU, _check_closed_form
+    from test_material_law_plugin import _config as block_config
+
+    law = tmp_path / "fat_on_dask.py"
+    law.write_text(Path(__file__).with_name("neo_hooke_law.py").read_text().replace('"neo_hooke"', '"fat_on_dask"'))
+    cfg = {**block_config(tmp_path, {"fat": {"law": "fat_on_dask", "mu": MU, "lam": LAM}}),
+           "plugins": [law.name], "subjects": [{"name": "a"}, {"name": "b"}]}
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    assert run_pipeline(path, scheduler=cluster, until="solve")
+    for name in ("a", "b"):
+        _check_closed_form(tmp_path / "out" / name / "results_fine.h5")

@@ -4,8 +4,8 @@ A block of fat under uniaxial strain (rollers on every face, the top face displa
 deformation is homogeneous, F = diag(1, 1, λ), so the end force is the closed form of the
 compressible neo-Hookean law, R = A0 [μ (λ − 1/λ) + λ_L ln λ / λ], and the law's tangent is
 checked against finite differences of its stress. The same law, written beside a config that
-names it in ``plugins``, runs through the ``pixmuscle`` executable; its file is part of the solve's
-lineage.
+names it in ``plugins`` (with a report section in one more file), runs through the ``pixmuscle``
+executable; its file is part of the solve's lineage.
 """
 
 from __future__ import annotations
@@ -25,7 +25,6 @@ from pixmuscle.errors import InputError
 from pixmuscle.imaging.nifti import save_volume
 from pixmuscle.mechanics.materials import LAWS, material_from_config
 from pixmuscle.pipeline import load_subjects, run_subject
-from pixmuscle.plan import is_up_to_date, plan_case
 
 MU, LAM = 4.0, 30.0
 SHAPE, H = (3, 3, 5), (0.2, 0.2, 0.3)  # voxels, cm
@@ -111,25 +110,55 @@ def _pixmuscle(*args) -> subprocess.CompletedProcess:
     return subprocess.run([*cmd, *map(str, args)], capture_output=True, text=True, env=env, timeout=300)
 
 
-def test_plugin_law_through_the_cli_matches_closed_form(tmp_path):
-    """The law file and a config naming it in `plugins`, run by `pixmuscle run`; a changed law file
-    makes the solve out of date."""
-    law = tmp_path / "laws" / "my_fat.py"  # registered under its own name: no clash with neo_hooke in this process
+#: a report section in one file: the top face's force of the last step, on the page
+SECTION = """
+import dataclasses
+
+from pixmuscle.report.sections import SECTIONS
+
+
+@SECTIONS.register("top_force", inputs=("results",), order=50)
+@dataclasses.dataclass(frozen=True)
+class TopForce:
+    def html(self, results):
+        return ["<h2>Top face</h2>", f'<p id="top-force">{results.reaction["z_max"][-1, 2]:.9e}</p>']
+"""
+
+
+def test_plugin_law_and_section_through_the_cli(tmp_path):
+    """A law file and a report-section file named in `plugins`, run by the `pixmuscle` executable: the
+    solve matches the law's closed form and the page shows the section; an edited law file reruns the
+    solve (its SHA-256 is in the results' provenance). The plugins are imported only in the
+    subprocesses, so this process's registries stay as they were."""
+    from pixmuscle.store import read_meta, sha256_file
+
+    law = tmp_path / "laws" / "my_fat.py"
     law.parent.mkdir()
     law.write_text(Path(__file__).with_name("neo_hooke_law.py").read_text().replace('"neo_hooke"', '"my_fat"'))
-    cfg = {"plugins": ["laws/my_fat.py"], **_config(tmp_path, {"fat": {"law": "my_fat", "mu": MU, "lam": LAM}})}
+    (tmp_path / "top_force.py").write_text(SECTION)
+    cfg = {"plugins": ["laws/my_fat.py", "top_force.py"],
+           **_config(tmp_path, {"fat": {"law": "my_fat", "mu": MU, "lam": LAM}}),
+           "report": {"vtu": False, "slices": False, "view3d": False, "dpi": 40}}
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(cfg))
-    done = _pixmuscle("-q", "run", path, "--until", "solve")
+    done = _pixmuscle("-q", "run", path)
     assert done.returncode == 0, done.stderr
     results = tmp_path / "out" / "results_fine.h5"
-    assert done.stdout.split() == [str(results)]
     _check_closed_form(results)
-    # lineage: the law file is an input of the solve
-    solve = next(st for st in plan_case(load_subjects(path)[0], until="solve") if st.kind == "solve")
-    assert law.resolve() in solve.inputs and is_up_to_date(solve)
+    page = (tmp_path / "out" / "report" / "index.html").read_text()
+    shown = float(page.split('<p id="top-force">')[1].split("<")[0])
+    area = SHAPE[0] * H[0] * SHAPE[1] * H[1]
+    assert shown == pytest.approx(area * (MU * (STRETCH - 1 / STRETCH) + LAM * np.log(STRETCH) / STRETCH), rel=2e-3)
+    # lineage: the law file is an input of the solve; unchanged it is skipped, edited it reruns
+    inputs = read_meta(results)["provenance"]["inputs"]
+    assert inputs[str(law.resolve())] == sha256_file(law)
+    made = results.stat().st_mtime_ns
+    assert _pixmuscle("-q", "run", path, "--until", "solve").returncode == 0
+    assert results.stat().st_mtime_ns == made
     law.write_text(law.read_text() + "\n# edited\n")
-    assert not is_up_to_date(solve)
+    assert _pixmuscle("-q", "run", path, "--until", "solve").returncode == 0
+    assert results.stat().st_mtime_ns != made
+    assert read_meta(results)["provenance"]["inputs"][str(law.resolve())] == sha256_file(law)
 
 
 @pytest.mark.parametrize("plugins,text,message", [
