@@ -220,12 +220,11 @@ def clamped(tmp_path_factory):
 
 
 def test_point_data_is_the_rk_field_and_holds_the_clamped_ends(clamped):
-    """The VTU's point displacement is the model's own field Σ_J Ψ_J(x) d_J at the cell corners: inside the
-    clamped z faces it moves ≤ 1 % of the largest point displacement (a mean of nodal values: 22 % here), and
-    at sample corners it equals Ψ computed here from the RK shape functions with the solve's support.
-
-    The penalty holds the field at the end-face centres (the constraint points); on the faces' outer edge
-    the RK field is not held and moves a few percent (7.8 % here; 33 % with the mean of nodal values)."""
+    """The VTU's point displacement is the model's own field Σ_J Ψ_J(x) d_J at the cell corners: every point
+    of the clamped z faces, their outer edges and corners included, moves ≤ 1 % of the largest point
+    displacement (0.9 % here; a mean of nodal values: 33 %; the RK field with the penalty at the end-face
+    centres only: 7.8 % on the outer edge), and at sample corners it equals Ψ computed here from the RK shape
+    functions with the solve's support."""
     from vtkmodules.util.numpy_support import vtk_to_numpy
 
     from pixmuscle.rk import shape_functions
@@ -243,8 +242,7 @@ def test_point_data_is_the_rk_field_and_holds_the_clamped_ends(clamped):
     lo, hi = X.min(axis=0) - h / 2, X.max(axis=0) + h / 2
     edge = np.isclose(pts[:, :2], lo[:2]).any(axis=1) | np.isclose(pts[:, :2], hi[:2]).any(axis=1)
     assert ends.sum() == 2 * 5 * 5 and (ends & ~edge).sum() == 2 * 3 * 3
-    assert np.linalg.norm(u[ends & ~edge], axis=1).max() <= 0.01 * umax
-    assert np.linalg.norm(u[ends], axis=1).max() <= 0.1 * umax
+    assert np.linalg.norm(u[ends], axis=1).max() <= 0.01 * umax
     sample = np.random.default_rng(3).choice(pts.shape[0], 12, replace=False)
     a = np.asarray(cfg.support.a_over_h) * h  # the solve's support (a box: no enlarged supports)
     psi = shape_functions(X, pts[sample], a, kernel=cfg.support.kernel, order=cfg.support.order,

@@ -2,19 +2,29 @@
 
 RK shape functions are not interpolating (Ψ_J(X_I) ≠ δ_IJ), so a prescribed displacement g acts on
 the RK-interpolated displacement u^h(x_c) = Σ_J Ψ_J(x_c) d_J at constraint points x_c through the
-penalty energy (the last term of eq. 9, with one quadrature point per constrained node)
+penalty energy (the last term of eq. 9, integrated by a quadrature rule on the constrained boundary)
 
     Π_pen = (β/2) Σ_c w_c Σ_{j constrained} (u^h_j(x_c) − t g_cj)²,
 
 t ∈ [0, 1] the load factor of the step. Its gradient and Hessian are the penalty parts of f_ext
 and K in eq. (19): f_pen = β Ψ_cᵀ W (u^h − t g), K_pen = β Ψ_cᵀ W Ψ_c (per component).
 
-Constraint points and quadrature weights w_c (cm²) per constrained node I:
+Constraint points and quadrature weights w_c (cm²):
 
 * end sets ``x_min, x_max, y_min, y_max, z_min, z_max`` with ``penalty.at = auto`` (default): the
-  centre of the node's boundary face on that end (X_I ± h_k/2 e_k), weight = the face area
-  h_i h_j. This is the one-point face quadrature of the boundary integral in eq. (9) on the actual
-  end surface of the voxel body, so a homogeneous deformation is reproduced exactly.
+  vertices of the end faces of the set's cells (the actual end surface of the voxel body, half a
+  voxel outside the end node layer), each vertex once with the quarter areas of the faces that
+  share it summed (:func:`face_vertices`) — the trapezoidal rule for the boundary integral of
+  eq. (9) on that surface. It reproduces a homogeneous deformation exactly and holds the field on
+  the whole face, its outer edge included. A one-point rule at the face centres holds the field
+  only there: on a clamped, activated 4 × 4 × 8 block the RK field on the outer edge of the end
+  faces then moves 7.4 % of the largest displacement even with a 10³ times stiffer penalty — a
+  constraint that leaves the edge free, not a penalty error. The trapezoidal rule has fewer points
+  than the two node layers whose shape functions reach the face, so it does not over-constrain:
+  its gap falls as 1/β once β is large (below). Face centres *and* vertices together, or a 2 × 2
+  Gauss rule per face, have more points than those nodes (over-constrained): on the same block
+  their reaction rises 2.3–2.4 % from factor 1 to 10 (the trapezoidal rule's 1.1 %), and the
+  Gauss rule leaves the edge at 3.7 %.
 * any other node set, ``penalty.at = nodes``, and ``point`` conditions: the node itself,
   u^h(X_I); weight = the area of the cell's boundary faces (cm²), or V^(2/3) for a node with none
   (an interior node or a point constraint).
@@ -22,11 +32,19 @@ Constraint points and quadrature weights w_c (cm²) per constrained node I:
 Penalty number (N/cm³): β = factor · M / h_min by default, with M the largest reference
 longitudinal tangent modulus max_L,i,J A_L[i, J, i, J] (N/cm², ≈ K + 4μ/3 for an isotropic
 material) and h_min the smallest spacing; ``penalty.beta`` sets it directly. Constraint error:
-at equilibrium the penalty traction is t_c = −β (u^h − g), so |u^h − g| = |t_c| / β and, relative to
-the cell size, |u^h − g| / h_min ≈ |t_c| / (factor · M) — the traction-to-modulus ratio (a strain
-measure) divided by the factor. With the default factor 1 the gap is about the strain times the
-cell size (a fraction of a voxel); the reaction forces change by ≤ 0.3 % between factors 1 and 10³
-(docs/linsolve-research.md §4), and the iterative solver needs the small factor.
+linearised, K d + β Ψᵀ W (Ψ d − g) = f gives for the gap e = Ψ d − g
+
+    e = (I + β S W)⁻¹ e₀,   S = Ψ K⁻¹ Ψᵀ (the flexibility of the body at the constraint points),
+
+e₀ the gap without penalty: a mode of S W with eigenvalue s shrinks by 1 / (1 + β s), so the gap
+falls as 1/β only once β s ≫ 1 for every mode it contains, and tenfold β reduces it by a factor
+between 1 and 10 before that. The stiffest modes (smallest s) are the ones that differ between
+neighbouring vertices along a clamped edge, where the traction concentrates. At equilibrium
+the penalty traction is t_c = −β (u^h − g), so |u^h − g| / h_min ≈ |t_c| / (factor · M): the
+traction-to-modulus ratio (a strain measure) divided by the factor. With the default factor 1
+the gap is a fraction of the strain times the cell size; on a clamped, activated 4 × 4 × 8 block
+the reaction changes by 1.5 % between factor 1 and 10³ (0.1 % with the one-point rule, which leaves
+the edges free), and the iterative solver needs the small factor.
 
 Reaction (sign convention of docs/architecture.md): the force the support exerts on the body,
 
@@ -218,6 +236,44 @@ def check_boundary_conditions(model, bcs: list[BoundaryCondition]) -> None:
                                  "give a point on or inside the body (cm, model frame)")
 
 
+def face_vertices(centre: np.ndarray, node: np.ndarray, spacing, axis: int):
+    """Trapezoidal-rule points of axis-normal cell faces: their vertices, each once, with the
+    quarter areas of the faces that share it summed.
+
+    Parameters
+    ----------
+    centre : (F, 3) float
+        Face centres, cm (faces normal to ``axis``, all in one plane).
+    node : (F,) int
+        Node of each face.
+    spacing : (3,) float
+        Cell edge lengths h, cm.
+    axis : int
+        Normal axis k of the faces.
+
+    Returns
+    -------
+    points : (V, 3) float
+        Vertices, cm.
+    node : (V,) int
+        Node of the first face at each vertex.
+    weight : (V,) float
+        Σ over the faces at the vertex of area/4, cm² (sums to the faces' total area).
+    """
+    h = np.asarray(spacing, float)
+    i, j = [a for a in range(3) if a != axis]
+    offsets = np.zeros((4, 3))
+    offsets[:, i] = [-0.5, 0.5, -0.5, 0.5]
+    offsets[:, j] = [-0.5, -0.5, 0.5, 0.5]
+    pts = (centre[:, None, :] + offsets[None] * h).reshape(-1, 3)
+    if pts.shape[0] == 0:
+        return pts, np.zeros(0, np.int64), np.zeros(0)
+    key = np.rint(2 * (pts - pts.min(axis=0)) / h).astype(np.int64)   # half-voxel grid index
+    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    weight = np.bincount(inv.ravel(), minlength=first.size) * (h[i] * h[j] / 4)
+    return pts[first], np.repeat(np.asarray(node, np.int64), 4)[first], weight
+
+
 def constraint_points(model, bcs: list[BoundaryCondition], faces: Faces, *, at: str = "auto"):
     """Constraint points, weights and targets of the boundary conditions (no shape functions yet).
 
@@ -263,7 +319,12 @@ def constraint_points(model, bcs: list[BoundaryCondition], faces: Faces, *, at: 
                 if at == "auto":
                     face = faces.plus[k, idx] if s > 0 else faces.minus[k, idx]
                     on_end = faces.boundary[face]
-                    where[on_end, k] += s * h[k] / 2
+                    centre = where[on_end]
+                    centre[:, k] += s * h[k] / 2
+                    vpts, vnode, vw = face_vertices(centre, idx[on_end], h, k)
+                    where = np.concatenate([vpts, where[~on_end]])
+                    idx = np.concatenate([vnode, idx[~on_end]])
+                    w = np.concatenate([vw, w[~on_end]])
             else:
                 w = bnd_area[idx].copy()
                 w[w == 0] = vol ** (2.0 / 3.0)

@@ -160,6 +160,33 @@ def cell_faces(X: np.ndarray, ijk: np.ndarray, spacing) -> Faces:
     )
 
 
+def cell_corners(X: np.ndarray, spacing) -> np.ndarray:
+    """The distinct corners of the voxel cells of the nodes (each cell ``X_I ± spacing/2``).
+
+    Parameters
+    ----------
+    X : (N, 3) float
+        Node coordinates (voxel centres), cm.
+    spacing : (3,) float
+        Cell edge lengths, cm.
+
+    Returns
+    -------
+    (P, 3) float64
+        Cell corners, cm, each once (sorted by their half-voxel grid index).
+    """
+    X = np.asarray(X, float)
+    h = np.asarray(spacing, float)
+    if X.shape[0] == 0:
+        return np.zeros((0, 3))
+    offsets = np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)], np.int64)
+    base = X.min(axis=0)
+    half = np.rint(2 * (X - base) / h).astype(np.int64)          # node index on the half-voxel grid
+    key = (half[:, None, :] + offsets[None]).reshape(-1, 3)
+    key = np.unique(key, axis=0)
+    return base + key * (h / 2)
+
+
 def face_incidence(faces: Faces, volume: np.ndarray) -> list[sp.csr_matrix]:
     """Face–cell incidence matrices D_k with entries ±A_f/V_L (cm⁻¹).
 

@@ -38,7 +38,7 @@ from .ellipticity import acoustic_minimum, directions
 from .linsolve import make_solver
 from .materials import LAWS, needs
 from .results import Results, cauchy_voigt, max_principal
-from .scni import SCNI, build_scni, cell_faces, face_incidence, support_radius
+from .scni import SCNI, build_scni, cell_corners, cell_faces, face_incidence, support_radius
 from .stabilization import stabilization_operators, stabilization_stiffness
 from .tangent import MatrixFreeTangent, ProductForm, spd_surrogate
 from .volumetric import PatchProjection, VolumetricState
@@ -433,12 +433,18 @@ def node_supports(model: Model, cfg: SolveConfig) -> tuple[np.ndarray, int]:
 
 def rk_supports(model: Model, support: SupportConfig) -> tuple[np.ndarray, int]:
     """:func:`node_supports` for the ``solve.support`` section alone (what the report needs to
-    evaluate a solve's RK field again: same inputs, same supports)."""
+    evaluate a solve's RK field again: same inputs, same supports).
+
+    Covered: every point where the solve or its output uses the field — the SCNI face centres,
+    the nodes, and the cell corners (the penalty points on end faces and the corners of the cells
+    written for ParaView)."""
     from ..rk import covering_supports
 
     nominal = support_radius(model.spacing, support.a_over_h)
-    faces = cell_faces(np.asarray(model.X, float), model.ijk, np.asarray(model.spacing, float))
-    return covering_supports(model.X, [faces.centre, model.X], nominal, kernel=support.kernel,
+    X = np.asarray(model.X, float)
+    faces = cell_faces(X, model.ijk, np.asarray(model.spacing, float))
+    corners = cell_corners(X, model.spacing)
+    return covering_supports(model.X, [faces.centre, model.X, corners], nominal, kernel=support.kernel,
                              order=support.order, support_shape=support.shape)
 
 
