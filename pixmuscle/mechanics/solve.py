@@ -419,9 +419,9 @@ def node_supports(model: Model, cfg: SolveConfig) -> tuple[np.ndarray, int]:
     """Per-node RK support radii (N, 3), cm: a = (a/h)·spacing, enlarged only where needed.
 
     Thin image features (a one-voxel strand, a diagonal chain left by coarsening) leave some
-    face centres or nodes with a singular moment matrix under the nominal support; the supports
-    of the nodes around them are enlarged locally (:func:`pixmuscle.rk.covering_supports`) and
-    the count is logged. Everywhere else the support is exactly the nominal one.
+    face centres, nodes or cell corners with a singular moment matrix under the nominal support;
+    the supports of the nodes around them are enlarged locally
+    (:func:`pixmuscle.rk.covering_supports`) and the count is logged. Everywhere else the support is exactly the nominal one.
 
     Returns
     -------

@@ -8,7 +8,7 @@ plane. Nodal values are **cell data** (one value per node = per cell). The displ
 **point data**: at every cell corner x the model's own field there, the RK approximation
 u(x) = Σ_J Ψ_J(x) d_J with the solve's shape functions and coefficients
 (:func:`corner_displacements`), for *Warp By Vector*: held ends stay where the penalty holds
-them (at the end-face centres). Stresses are cell data only: the model's stress is the smoothed
+them (end sets: at the vertices of their end faces, which are these corners). Stresses are cell data only: the model's stress is the smoothed
 (SCNI) stress of each integration cell, with a material that changes from cell to cell;
 ParaView's *Cell Data to Point Data* smooths it for colouring. The field-data array ``notes``
 says so in the files. Coordinates are the **reference** configuration, cm.
@@ -241,7 +241,9 @@ def corner_displacements(res, steps: Sequence[int], points: np.ndarray, hexa: np
     u : (k, P, 3) float64, cm
     n_fallback : int
         Corners where the RK field is not defined (a singular moment matrix beside a one-voxel
-        strand): there ``u`` is the mean of the nodal displacements of the cells around the corner.
+        strand; the solve's supports cover every cell corner, so only results of solves whose
+        supports did not): there ``u`` is the mean of the nodal displacements of the cells around
+        the corner.
 
     Raises
     ------
