@@ -16,16 +16,17 @@ from pixmuscle.verify.mechanics import _cfg, mask_model
 FACTORS = (1.0, 10.0, 100.0, 1000.0)
 
 
-def _bar_solve(factor):
+def _bar_solve(factor, at):
     model = mask_model(np.ones((4, 4, 8), bool), (0.2, 0.2, 0.5))
     bcs = [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y"], "displace": {"z": 0.2}}]
-    cfg = _cfg(steps=1, activation={"from": 0.0, "to": 0.0}, boundary_conditions=bcs, penalty={"factor": factor})
+    cfg = _cfg(steps=1, activation={"from": 0.0, "to": 0.0}, boundary_conditions=bcs, penalty={"factor": factor, "at": at})
     return solve(model, cfg)
 
 
-@pytest.fixture(scope="module")
-def bars():
-    return {f: _bar_solve(f) for f in FACTORS}
+@pytest.fixture(scope="module", params=["auto", "vertices"])
+def bars(request):
+    """The bar at each penalty factor, end sets held at their end-face centres (default) or vertices."""
+    return {f: _bar_solve(f, request.param) for f in FACTORS}
 
 
 def test_gap_falls_with_beta_as_the_penalty_theory_says(bars):
@@ -44,13 +45,13 @@ def test_reaction_converges_with_beta_and_the_prescribed_displacement_is_met(bar
     assert abs(force[-2] / force[-1] - 1) < 0.002  # converged in β
     assert abs(force[0] / force[-1] - 1) < 0.02  # the default factor is within 2 % of the constrained limit
     a = bars[1.0]
-    top = a.constraint_gap["z_max"]["max_cm"]  # at the constraint points (end-face vertices)
+    top = a.constraint_gap["z_max"]["max_cm"]  # at the constraint points (end faces)
     assert top < 0.01 * 0.2
     assert "constraint gap" not in " ".join(a.warnings)
 
 
-def test_end_sets_are_held_at_the_vertices_of_their_end_faces():
-    """On an irregular end face the constraint points are the face vertices, each once (the corners of the
+def test_end_sets_can_be_held_at_the_vertices_of_their_end_faces():
+    """``penalty.at: vertices``: on an irregular end face the constraint points are the face vertices, each once (the corners of the
     cells written for ParaView, from their own enumeration), with weights that integrate a bilinear field
     over the end surface exactly (trapezoidal rule; the exact integral face by face here)."""
     from pixmuscle.config import parse_section
@@ -67,7 +68,7 @@ def test_end_sets_are_held_at_the_vertices_of_their_end_faces():
     model = mask_model(mask, h)
     faces = cell_faces(model.X, model.ijk, h)
     bc = parse_section(BoundaryCondition, {"nodes": "z_min", "fix": ["x", "y", "z"]}, "bc")
-    _, pts, node, w, *_ = constraint_points(model, [bc], faces)
+    _, pts, node, w, *_ = constraint_points(model, [bc], faces, at="vertices")
     bottom = model.ijk[:, 2] == 0
     assert np.all(bottom[node])
     corners, _ = voxel_hexahedra(model.ijk, model.origin, h)

@@ -12,19 +12,27 @@ and K in eq. (19): f_pen = β Ψ_cᵀ W (u^h − t g), K_pen = β Ψ_cᵀ W Ψ_c
 Constraint points and quadrature weights w_c (cm²):
 
 * end sets ``x_min, x_max, y_min, y_max, z_min, z_max`` with ``penalty.at = auto`` (default): the
-  vertices of the end faces of the set's cells (the actual end surface of the voxel body, half a
-  voxel outside the end node layer), each vertex once with the quarter areas of the faces that
-  share it summed (:func:`face_vertices`) — the trapezoidal rule for the boundary integral of
-  eq. (9) on that surface. It reproduces a homogeneous deformation exactly and holds the field on
-  the whole face, its outer edge included. A one-point rule at the face centres holds the field
-  only there: on a clamped, activated 4 × 4 × 8 block the RK field on the outer edge of the end
-  faces then moves 7.4 % of the largest displacement even with a 10³ times stiffer penalty — a
-  constraint that leaves the edge free, not a penalty error. The trapezoidal rule has fewer points
-  than the two node layers whose shape functions reach the face, so it does not over-constrain:
-  its gap falls as 1/β once β is large (below). Face centres *and* vertices together, or a 2 × 2
-  Gauss rule per face, have more points than those nodes (over-constrained): on the same block
-  their reaction rises 2.3–2.4 % from factor 1 to 10 (the trapezoidal rule's 1.1 %), and the
-  Gauss rule leaves the edge at 3.7 %.
+  centre of the node's boundary face on that end (X_I ± h_k/2 e_k), weight = the face area
+  h_i h_j. This is the one-point face quadrature of the boundary integral in eq. (9) on the actual
+  end surface of the voxel body, the same points at which SCNI integrates the boundary term of
+  the smoothed gradient, so the penalty rows Ψ(x_c) are SCNI's own boundary rows and a
+  homogeneous deformation is reproduced exactly at any β (the patch test). The field is held
+  only at those points: between them it stays within about 1 % on a clamped, activated
+  4 × 4 × 8 block, but on the outer edge of the face (half a voxel beyond the outermost centres,
+  where the RK field extrapolates the end layer's steep gradient; moment matrix well conditioned,
+  cond ≈ 2·10³) it moves 7.8 % of the largest point displacement, and still 7.4 % with a 10³ times
+  stiffer penalty: the constraint leaves the edge free, it is not a penalty error.
+* the same sets with ``penalty.at = vertices``: the vertices of those end faces, each once with
+  the quarter areas of the faces that share it summed (:func:`face_vertices`) — the trapezoidal
+  rule on the same surface. It holds the field on the whole face, outer edge included (the block:
+  0.87 % at factor 1, 0.01 % at 10³; the demo: 1.15 % of the largest point displacement). It has
+  fewer points than the two node layers whose shape functions reach the face, so it does not
+  over-constrain (its gap falls as 1/β for large β). But its rows are not SCNI's boundary rows:
+  a homogeneous stretch is reproduced only to 0.5 % in the displacement, whatever β (forces
+  within 0.05 %), and forces move by ~1 % (clamped active block +1.0 % against finite elements
+  instead of +0.8 %; tendon +0.37 % instead of +0.17 %). Face centres *and* vertices together,
+  or a 2 × 2 Gauss rule per face, have more points than those nodes (over-constrained: the
+  block's reaction rises 2.3–2.4 % from factor 1 to 10, the Gauss rule leaves the edge at 3.7 %).
 * any other node set, ``penalty.at = nodes``, and ``point`` conditions: the node itself,
   u^h(X_I); weight = the area of the cell's boundary faces (cm²), or V^(2/3) for a node with none
   (an interior node or a point constraint).
@@ -43,8 +51,9 @@ neighbouring vertices along a clamped edge, where the traction concentrates. At 
 the penalty traction is t_c = −β (u^h − g), so |u^h − g| / h_min ≈ |t_c| / (factor · M): the
 traction-to-modulus ratio (a strain measure) divided by the factor. With the default factor 1
 the gap is a fraction of the strain times the cell size; on a clamped, activated 4 × 4 × 8 block
-the reaction changes by 1.5 % between factor 1 and 10³ (0.1 % with the one-point rule, which leaves
-the edges free), and the iterative solver needs the small factor.
+the reaction changes by 0.1 % between factor 1 and 10³ at the face centres (gap ratio 10.0 per
+tenfold β from factor 1), 1.5 % at the vertices (ratios 4.4, 7.1, 9.4), and the iterative solver
+needs the small factor.
 
 Reaction (sign convention of docs/architecture.md): the force the support exerts on the body,
 
@@ -316,12 +325,12 @@ def constraint_points(model, bcs: list[BoundaryCondition], faces: Faces, *, at: 
             if bc.nodes in END_SETS:
                 k, s = END_SETS[bc.nodes]
                 w = np.full(idx.size, vol / h[k])
-                if at == "auto":
+                if at in ("auto", "vertices"):
                     face = faces.plus[k, idx] if s > 0 else faces.minus[k, idx]
                     on_end = faces.boundary[face]
-                    centre = where[on_end]
-                    centre[:, k] += s * h[k] / 2
-                    vpts, vnode, vw = face_vertices(centre, idx[on_end], h, k)
+                    where[on_end, k] += s * h[k] / 2
+                if at == "vertices":
+                    vpts, vnode, vw = face_vertices(where[on_end], idx[on_end], h, k)
                     where = np.concatenate([vpts, where[~on_end]])
                     idx = np.concatenate([vnode, idx[~on_end]])
                     w = np.concatenate([vw, w[~on_end]])

@@ -147,7 +147,7 @@ class PenaltyConfig:
 
     factor: float = field(default=1.0, metadata={"gt": 0, "doc": "β = factor · (largest reference tangent modulus) / (smallest spacing)"})
     beta: float | None = field(default=None, metadata={"gt": 0, "doc": "explicit β in N/cm³ (overrides factor)"})
-    at: Literal["auto", "nodes"] = field(default="auto", metadata={"doc": "auto: end sets (x_min..z_max) are constrained on their end faces, other sets at the nodes; nodes: always at the nodes"})
+    at: Literal["auto", "vertices", "nodes"] = field(default="auto", metadata={"doc": "auto: end sets (x_min..z_max) are constrained at their end-face centres, other sets at the nodes; vertices: end sets at the vertices of their end faces (the whole face held, outer edges included; patch test to 0.5 %); nodes: always at the nodes"})
 
 
 @dataclasses.dataclass(frozen=True)

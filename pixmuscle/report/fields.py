@@ -184,8 +184,8 @@ def field_data(muscle_names: Sequence[str], *, point_displacement: bool = True) 
 def rk_support(res) -> tuple[np.ndarray, dict]:
     """The RK shape-function options a solve used, from its results file.
 
-    Reads the ``support`` section of the solve configuration stored in the file (defaults where
-    it is not given, as the solve did) and, when the solve enlarged supports around thin features
+    Reads the ``support`` section (and ``penalty.at``) of the solve configuration stored in the
+    file (defaults where it is not given, as the solve did) and, when the solve enlarged supports around thin features
     (``solver_info["supports_enlarged"]``, or not recorded), computes them again with the solve's
     own function (:func:`pixmuscle.mechanics.solve.rk_supports`).
 
@@ -213,12 +213,14 @@ def rk_support(res) -> tuple[np.ndarray, dict]:
         raw = yaml.safe_load(text) if text.strip() else {}
     except yaml.YAMLError as exc:
         raise InputError(f"{(res.meta or {}).get('path', 'results')}: attribute config is not YAML: {exc}") from None
+    penalty = raw.get("penalty") if isinstance(raw, dict) else None
+    corners = isinstance(penalty, dict) and penalty.get("at") == "vertices"
     raw = raw.get("support") if isinstance(raw, dict) else None
     sc = parse_section(SupportConfig, raw or {}, "solve.support")
     m = res.model
     enlarged = (res.info or {}).get("supports_enlarged")
     if enlarged is None or int(enlarged) > 0:
-        support = rk_supports(m, sc)[0]
+        support = rk_supports(m, sc, corners=corners)[0]
     else:
         support = support_radius(m.spacing, sc.a_over_h)
     return support, {"kernel": sc.kernel, "order": sc.order, "support_shape": sc.shape}
@@ -241,9 +243,8 @@ def corner_displacements(res, steps: Sequence[int], points: np.ndarray, hexa: np
     u : (k, P, 3) float64, cm
     n_fallback : int
         Corners where the RK field is not defined (a singular moment matrix beside a one-voxel
-        strand; the solve's supports cover every cell corner, so only results of solves whose
-        supports did not): there ``u`` is the mean of the nodal displacements of the cells around
-        the corner.
+        strand; with ``penalty.at: vertices`` the solve's supports cover every corner): there
+        ``u`` is the mean of the nodal displacements of the cells around the corner.
 
     Raises
     ------
