@@ -46,8 +46,7 @@ linearised, K d + β Ψᵀ W (Ψ d − g) = f gives for the gap e = Ψ d − g
 
 e₀ the gap without penalty: a mode of S W with eigenvalue s shrinks by 1 / (1 + β s), so the gap
 falls as 1/β only once β s ≫ 1 for every mode it contains, and tenfold β reduces it by a factor
-between 1 and 10 before that. The stiffest modes (smallest s) are the ones that differ between
-neighbouring vertices along a clamped edge, where the traction concentrates. At equilibrium
+between 1 and 10 before that. At equilibrium
 the penalty traction is t_c = −β (u^h − g), so |u^h − g| / h_min ≈ |t_c| / (factor · M): the
 traction-to-modulus ratio (a strain measure) divided by the factor. With the default factor 1
 the gap is a fraction of the strain times the cell size; on a clamped, activated 4 × 4 × 8 block
