@@ -235,18 +235,21 @@ AUTO_ITERATIVE = "cg_amg"
 CONDITIONING_VARIANTS = ("nodal:cg_amg", "projected:1,1,3:cg_amg", "projected:2,2,3:cg_amg", "projected:2,2,3:mixed_amg")
 
 
-def parse_variant(spec: str) -> tuple[str, tuple[int, int, int] | None, str]:
-    """``nodal:BACKEND`` or ``projected:PX,PY,PZ:BACKEND`` → (method, patch, backend)."""
+def parse_variant(spec: str) -> tuple[str, tuple[int, int, int] | None, str, str]:
+    """``nodal:BACKEND`` or ``projected:PX,PY,PZ:BACKEND[:HELD]`` → (method, patch, backend, held).
+
+    HELD is ``volumetric.held`` (``own``, the default, or ``patch``).
+    """
     parts = spec.split(":")
     if parts[0] == "nodal" and len(parts) == 2:
-        return "nodal", None, parts[1]
-    if parts[0] == "projected" and len(parts) == 3:
-        return "projected", tuple(int(x) for x in parts[1].split(",")), parts[2]
-    raise ValueError(f"variant {spec!r}: expected nodal:BACKEND or projected:PX,PY,PZ:BACKEND")
+        return "nodal", None, parts[1], "own"
+    if parts[0] == "projected" and len(parts) in (3, 4) and (len(parts) == 3 or parts[3] in ("own", "patch")):
+        return "projected", tuple(int(x) for x in parts[1].split(",")), parts[2], parts[3] if len(parts) == 4 else "own"
+    raise ValueError(f"variant {spec!r}: expected nodal:BACKEND or projected:PX,PY,PZ:BACKEND[:own|patch]")
 
 
 def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol: float = 1e-6,
-                 variants=CONDITIONING_VARIANTS, on_row=None) -> dict:
+                 variants=CONDITIONING_VARIANTS, on_row=None, previous=()) -> dict:
     """Krylov iterations of one Newton system (first load step, α = 0.095) against near-incompressibility.
 
     Every tissue's bulk modulus K is multiplied by each of ``scales`` (K/μ ≈ 95, 950, 9,500 for the
@@ -255,7 +258,8 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
     robust where the cost of the nearly incompressible tissues comes from. Rows of the shipped
     defaults (:class:`~pixmuscle.mechanics.config.VolumetricConfig`, the backend ``auto`` picks
     above its direct limit) carry ``"default": true``. ``on_row(record)`` is called with the
-    record so far after every row (a long run keeps what it measured).
+    record so far after every row (a long run keeps what it measured); ``previous`` rows (an
+    earlier record's, e.g. at another penalty number) come first in it.
 
     The penalty number β of the end and bone constraints is the default one of the paper's tissues
     (K × 1) in every row: the default β grows with K, and a stiffer penalty slows every iterative
@@ -267,13 +271,13 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
     from pixmuscle.mechanics.solve import build_system
 
     shipped = SolveConfig()
-    rows = []
+    rows, previous = [], list(previous)
     beta = None
     for spec in variants:
-        method, patch, backend = parse_variant(spec)
+        method, patch, backend, held = parse_variant(spec)
         for scale in scales:
             mats = {k: {"K": v * scale} for k, v in BULK.items()}
-            vol = {"method": method} if patch is None else {"method": method, "patch": list(patch)}
+            vol = {"method": method} if patch is None else {"method": method, "patch": list(patch), "held": held}
             model, cfg = leg_case(size, penalty, materials=mats, volumetric=vol)
             if beta is None:  # β of the tissues' own K (the first system built at scale 1)
                 beta = build_system(*leg_case(size, penalty, volumetric=vol))[1]["beta"]
@@ -291,14 +295,15 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
             except SolverError as exc:
                 status = str(exc).split(":")[1].strip()[:60]
             its = int(solver.info["iterations"])
-            default = (method == shipped.volumetric.method and backend == AUTO_ITERATIVE
+            default = (method == shipped.volumetric.method and backend == AUTO_ITERATIVE and held == shipped.volumetric.held
                        and (patch is None or list(patch) == list(shipped.volumetric.patch)))
-            rows.append({"volumetric": method, "patch": None if patch is None else list(patch), "backend": backend,
+            rows.append({"volumetric": method, "patch": None if patch is None else list(patch), "held": held,
+                         "backend": backend, "penalty_beta": beta,
                          "bulk_scale": scale, "K_over_mu_muscle": round(BULK["muscle"] * scale / 5.26),
                          "krylov_iterations": its, "status": status, "solve_s": round(time.perf_counter() - t, 1),
                          "setup_s": round(setup, 1), "default": bool(default)})
             print(json.dumps(rows[-1]), flush=True)
-            record = {"size": size, "nodes": model.n_nodes, "rtol": rtol, "penalty_beta": beta, "rows": rows,
+            record = {"size": size, "nodes": model.n_nodes, "rtol": rtol, "penalty_beta": beta, "rows": previous + rows,
                       "load_avg": os.getloadavg()[0],
                       "peak_rss_GB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2)}
             if on_row is not None:
@@ -546,11 +551,20 @@ def main(argv=None):
     if args.conditioning:
         command = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
 
-        def keep(record):
-            (OUT / f"bench_solve_conditioning_{args.conditioning}.json").write_text(
-                json.dumps({**record, "command": command}, indent=1))
+        path = OUT / f"bench_solve_conditioning_{args.conditioning}.json"
+        previous = []
+        if args.append and path.exists():  # earlier rows stay, each with the command and load it ran under
+            old = json.loads(path.read_text())
+            previous = [{"command": old.get("command"), "load_avg": old.get("load_avg"),
+                         "penalty_beta": old.get("penalty_beta"), **r} for r in old["rows"]]
 
-        conditioning(args.conditioning, args.penalty, variants=args.variants, on_row=keep)
+        def keep(record):
+            for r in record["rows"]:
+                r.setdefault("command", command)
+                r.setdefault("load_avg", record["load_avg"])
+            path.write_text(json.dumps({**record, "command": command}, indent=1))
+
+        conditioning(args.conditioning, args.penalty, variants=args.variants, on_row=keep, previous=previous)
         return 0
     for size, fn, stem in ((args.probe_direct, probe_direct, "bench_solve_probe_direct"), (args.probe, probe, "bench_solve_probe")):
         if size:

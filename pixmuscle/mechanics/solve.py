@@ -108,10 +108,13 @@ class MechanicalSystem:
     patch : (3,) int or None
         Patch size (voxels) of the projected volumetric energy (:mod:`.volumetric`); ``None``:
         the nodal volumetric energy of the paper.
+    held_patches : {"own", "patch"}
+        ``own``: nodes held by a boundary condition at the node keep a single-node patch;
+        ``patch``: they stay in their ordinary patch.
     """
 
     def __init__(self, model: Model, scni: SCNI, materials: dict, constraints: Constraints, A0: np.ndarray,
-                 stabilization=None, patch=None):
+                 stabilization=None, patch=None, held_patches: str = "own"):
         self.model = model
         self.scni = scni
         self.n_nodes = model.n_nodes
@@ -133,7 +136,8 @@ class MechanicalSystem:
                 bulk[idx] = mat.bulk_modulus
             held = np.zeros(self.n_nodes, bool)
             at_node = np.all(np.isclose(constraints.points, np.asarray(model.X, float)[constraints.node]), axis=1)
-            held[constraints.node[at_node & constraints.mask.any(axis=1)]] = True
+            if held_patches == "own":
+                held[constraints.node[at_node & constraints.mask.any(axis=1)]] = True
             self.volumetric = PatchProjection(model.ijk, scni.volume, bulk, patch, single=held)
         self.stab = None
         if stabilization is not None:
@@ -403,7 +407,8 @@ def build_system(model: Model, cfg: SolveConfig) -> tuple[MechanicalSystem, dict
     info["penalty_s"] = time.perf_counter() - t3
     t2 = time.perf_counter()
     patch = cfg.volumetric.patch if cfg.volumetric.method == "projected" else None
-    system = MechanicalSystem(model, scni, materials, constraints, A0, cfg.stabilization if stab else None, patch=patch)
+    system = MechanicalSystem(model, scni, materials, constraints, A0, cfg.stabilization if stab else None, patch=patch,
+                              held_patches=cfg.volumetric.held)
     info["stabilization_s"] = time.perf_counter() - t2
     # absolute residual floor (N): round-off level of the penalty forces β w (u − g)
     system.atol = 1e-15 * beta * float(np.prod(model.spacing)) * max(1, model.n_nodes) ** 0.5

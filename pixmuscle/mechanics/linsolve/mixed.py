@@ -21,13 +21,24 @@ diag(1/(μ_p V_p)) + D⁻¹, and a block-triangular preconditioner
         [ 0    −Ŝ  ],   M_A⁻¹ ≈ K_d⁻¹ (one AMG V-cycle),   Ŝ = diag(c/(μ_p V_p) + 1/(V_p K̄_p)),
 
 gives Krylov iterations independent of K/μ and of the model size (Klawonn 1998; Elman,
-Silvester & Wathen 2014, ch. 9). The patches of single held nodes keep their term in K_d (their
-constraint is local and the penalty holds the node), so they are no pressure unknowns.
+Silvester & Wathen 2014, ch. 9), provided K_d holds no K-scaled term either. The patches of
+single held nodes (``volumetric.held: own``) keep their term in K_d, which then grows with K;
+with ``volumetric.held: patch`` every patch pressure is an unknown and K_d is K-free.
 
-Scaling. The unknowns are Δd (cm) and q̃ = q / s (N) with s the smallest voxel edge (cm), and
-the second row is divided by s, so both residual blocks are forces (N) and the condensed
-residual r − K Δd = r₁ + s Gᵀ r₂ is bounded by the mixed one. The solve stops on the exact
-condensed residual, so Newton, line search and tolerances are those of the condensed system.
+Scaling. The unknowns are Δd (cm) and q̃ = q / w (cm), and the second row is multiplied by w,
+w = mean_p(μ_p V_p) / s (N, s the smallest voxel edge): the system stays symmetric,
+
+    [ K_d      w Gᵀ       ] [Δd]   [r]
+    [ w G   −w² D⁻¹       ] [ q̃] = [0],
+
+both residual blocks are forces (N) and no block grows with K. (Scaling the second row by D
+instead makes the lower-left block K-scaled, and the iterations grow with K.) The condensed
+residual is r − K Δd = r₁ + Gᵀ (D/w) r₂ (rᵢ the mixed residual blocks), so it can lag the mixed
+one by up to K/μ. The solve stops on the exact condensed residual and, while it lags, continues
+FGMRES from its last iterate with the target tightened by the lag it showed; where that target
+would fall below the round-off floor of the mixed residual it refines instead (a new mixed solve
+for the condensed residual of the update so far). Newton, line search and tolerances are those
+of the condensed system.
 
 References
 ----------
@@ -93,26 +104,26 @@ class PatchDivergence:
 
 
 class _Mixed:
-    """The scaled mixed operator [K_d, s Gᵀ; (D/s) G, −I] on z = [Δd; q̃]."""
+    """The scaled mixed operator [K_d, w Gᵀ; w G, −w² D⁻¹] on z = [Δd; q̃]."""
 
-    def __init__(self, Kd, G: PatchDivergence, D: np.ndarray, s: float):
-        self.Kd, self.G, self.Ds, self.s = Kd, G, D / s, s
+    def __init__(self, Kd, G: PatchDivergence, D: np.ndarray, w: float):
+        self.Kd, self.G, self.w, self.c22 = Kd, G, w, w * w / D
         self.n = Kd.shape[0]
 
     def __matmul__(self, z):
         x, q = z[: self.n], z[self.n:]
-        return np.concatenate([self.Kd @ x + self.s * self.G.T(q), self.Ds * (self.G @ x) - q])
+        return np.concatenate([self.Kd @ x + self.w * self.G.T(q), self.w * (self.G @ x) - self.c22 * q])
 
 
 class _BlockTriangular:
-    """P⁻¹ for P = [M_A, s Gᵀ; 0, −Ŝ]: q̃ = −u₂/Ŝ, Δd = M_A⁻¹ (u₁ − s Gᵀ q̃)."""
+    """P⁻¹ for P = [M_A, w Gᵀ; 0, −Ŝ]: q̃ = −u₂/Ŝ, Δd = M_A⁻¹ (u₁ − w Gᵀ q̃)."""
 
-    def __init__(self, MA, G: PatchDivergence, shat: np.ndarray, s: float, n: int):
-        self.MA, self.G, self.shat, self.s, self.n = MA, G, shat, s, n
+    def __init__(self, MA, G: PatchDivergence, shat: np.ndarray, w: float, n: int):
+        self.MA, self.G, self.shat, self.w, self.n = MA, G, shat, w, n
 
     def __matmul__(self, u):
         q = -u[self.n:] / self.shat
-        x = self.MA @ (u[: self.n] - self.s * self.G.T(q))
+        x = self.MA @ (u[: self.n] - self.w * self.G.T(q))
         return np.concatenate([x, q])
 
 
@@ -173,10 +184,10 @@ class MixedBlockSolver(KrylovAMGSolver):
         G = PatchDivergence(full.main.B, full.main.BT, state.vol.a, Q)
         vp, kbar = vol.vp[press], vol.kbar[press]
         mu = Q @ self._mu_node
-        s = float(np.min(system.model.spacing))
         D = vp * kbar
-        shat = 1.0 + D * (self.schur_scale / (mu * vp))  # the scaled Schur complement I + D G K_d⁻¹ Gᵀ
-        self._mixed = (_Mixed(Kd, G, D, s), _BlockTriangular(self._M, G, shat, s, Kd.shape[0]))
+        w = float(np.mean(mu * vp)) / float(np.min(system.model.spacing))
+        shat = w * w * (1.0 / D + self.schur_scale / (mu * vp))  # w² (D⁻¹ + G K_d⁻¹ Gᵀ), diagonal
+        self._mixed = (_Mixed(Kd, G, D, w), _BlockTriangular(self._M, G, shat, w, Kd.shape[0]))
 
     def _refresh(self):
         """After a rebuild of the AMG hierarchy the preconditioner must use the new one."""
@@ -193,24 +204,32 @@ class MixedBlockSolver(KrylovAMGSolver):
         n = b.size
         bn = float(np.linalg.norm(b))
         A, P = self._mixed
-        z = np.zeros(n + A.Ds.size)
-        rhs = np.concatenate([b, np.zeros(A.Ds.size)])
-        total, status, inner = 0, "maxiter", rtol
-        for attempt in range(4):  # the exact condensed residual decides; tighten the inner target if it lags
-            z, its, status = fgmres(A, rhs, P, 0.5 * inner, self.maxiter - total, restart=self.restart, x0=z if total else None)
+        rhs = np.concatenate([b, np.zeros(A.c22.size)])
+        z, base, x = None, np.zeros(n), np.zeros(n)
+        total, status, target, floor = 0, "maxiter", rtol, 1e-10
+        for attempt in range(8):  # the exact condensed residual decides (it lags the mixed one)
+            z, its, status = fgmres(A, rhs, P, target, self.maxiter - total, restart=self.restart, x0=z)
             total += its
             if status == "maxiter" and not self._fresh and attempt == 0:
                 self._build()
                 self._refresh()
+                z = None
                 continue
-            res = float(np.linalg.norm(b - self._A @ z[:n]))
-            if res <= rtol * bn or bn == 0.0:
+            x = base + z[:n]
+            new = float(np.linalg.norm(b - self._A @ x))
+            if new <= rtol * bn or bn == 0.0:
                 status = "converged"
                 break
             if status != "converged" or total >= self.maxiter:
                 break
-            inner *= max(rtol * bn / res, 1e-3)
             status = "maxiter"
+            lag = new / (target * float(np.linalg.norm(rhs)))
+            if target * 0.5 * rtol * bn / new >= floor:  # continue from the iterate with a tighter target
+                target *= 0.5 * rtol * bn / new
+            else:  # below the round-off floor of the mixed residual: refine on the condensed residual
+                base, z = x, None
+                rhs = np.concatenate([b - self._A @ x, np.zeros(A.c22.size)])
+                target = min(max(0.5 * rtol * bn / (new * lag), floor), 0.5)
         self.info["iterations"] = total
         self.info["krylov_iterations"] += total
         self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
@@ -219,5 +238,5 @@ class MixedBlockSolver(KrylovAMGSolver):
                               f"{rtol:.1e}); check the boundary conditions (a free rigid-body motion makes K "
                               "singular), or use solver.backend: direct on small models")
         self._account(total, rtol)
-        return z[:n]
+        return x
 
