@@ -514,7 +514,7 @@ def main(argv=None):
     p.add_argument("--alpha", type=float, default=0.95)
     p.add_argument("--penalty", type=float, default=None, help="penalty factor (default: the solver default)")
     p.add_argument("--append", action="store_true",
-                   help="merge into the existing results file (cases measured again are replaced)")
+                   help="merge into the existing results file (cases measured again are replaced; --conditioning: rows are added)")
     p.add_argument("--tables", action="store_true",
                    help="only rewrite bench_solve.md (and the exponents in bench_solve.json) from bench_solve.json")
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)  # internal: run one case, print JSON
@@ -536,7 +536,7 @@ def main(argv=None):
     p.add_argument("--thresholds", type=float, nargs="+", default=[1e-3, 1e-2, 5e-2],
                    help="--infsup: count the eigenvalues below each of these (one LDLᵀ factorisation each)")
     p.add_argument("--variants", nargs="+", default=list(CONDITIONING_VARIANTS),
-                   help="--conditioning: VOLUMETRIC[:PATCH]:BACKEND, e.g. projected:2,2,3:mixed_amg")
+                   help="--conditioning: VOLUMETRIC[:PATCH]:BACKEND[:HELD], e.g. projected:2,2,3:mixed_amg:patch (HELD: volumetric.held)")
     args = p.parse_args(argv)
     if args.infsup:  # one row per (size, patch, held) in bench_solve_infsup.json
         patch = tuple(int(x) for x in args.patch.split(","))
