@@ -282,6 +282,47 @@ def face_vertices(centre: np.ndarray, node: np.ndarray, spacing, axis: int):
     return pts[first], np.repeat(np.asarray(node, np.int64), 4)[first], weight
 
 
+def _end_faces(faces: Faces, idx: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """Face of each node of an end set on that end, and whether it is a boundary face.
+
+    Returns
+    -------
+    face : (n,) int32
+        Index into ``faces`` of each node's face on the end ``name`` (e.g. its −z face for ``z_min``).
+    on_end : (n,) bool
+        The face is on the boundary (the node's cell has no neighbour beyond it).
+    """
+    k, s = END_SETS[name]
+    face = faces.plus[k, idx] if s > 0 else faces.minus[k, idx]
+    return face, faces.boundary[face]
+
+
+def vertex_rule_faces(model, bcs: list[BoundaryCondition], faces: Faces, *, at: str = "auto") -> np.ndarray:
+    """Boundary faces on which the penalty integrates by the vertex (trapezoidal) rule.
+
+    With ``at = "vertices"``: the end faces of every end set (``x_min`` … ``z_max``) that a boundary
+    condition constrains, each once; SCNI must integrate its boundary term on these faces by the
+    same rule (:func:`pixmuscle.mechanics.scni.build_scni`, ``vertex_faces``) so that the penalty
+    rows equal SCNI's boundary rows. Empty otherwise.
+
+    Returns
+    -------
+    (F_v,) int64
+        Sorted face indices into ``faces``.
+    """
+    if at != "vertices":
+        return np.zeros(0, np.int64)
+    out = [np.zeros(0, np.int64)]
+    n = np.asarray(model.X).shape[0]
+    for bc in bcs:
+        if bc.nodes in END_SETS and bc.nodes in model.sets:
+            idx = np.unique(np.asarray(model.sets[bc.nodes], np.int64))
+            idx = idx[(idx >= 0) & (idx < n)]
+            face, on_end = _end_faces(faces, idx, bc.nodes)
+            out.append(face[on_end].astype(np.int64))
+    return np.unique(np.concatenate(out))
+
+
 def constraint_points(model, bcs: list[BoundaryCondition], faces: Faces, *, at: str = "auto"):
     """Constraint points, weights and targets of the boundary conditions (no shape functions yet).
 
@@ -325,8 +366,7 @@ def constraint_points(model, bcs: list[BoundaryCondition], faces: Faces, *, at: 
                 k, s = END_SETS[bc.nodes]
                 w = np.full(idx.size, vol / h[k])
                 if at in ("auto", "vertices"):
-                    face = faces.plus[k, idx] if s > 0 else faces.minus[k, idx]
-                    on_end = faces.boundary[face]
+                    _, on_end = _end_faces(faces, idx, bc.nodes)
                     where[on_end, k] += s * h[k] / 2
                 if at == "vertices":
                     vpts, vnode, vw = face_vertices(where[on_end], idx[on_end], h, k)

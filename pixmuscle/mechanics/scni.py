@@ -26,6 +26,14 @@ evaluated once and enters its two cells with opposite signs, the discrete diverg
     Σ_L V_L b̃_Ik(X_L) = Σ_{boundary faces f} A_f n_k(f) Ψ_I(x_f)
 
 holds exactly (the "integration constraint" that makes SCNI pass the linear patch test).
+
+On chosen boundary faces (``vertex_faces``: the end faces whose penalty is integrated at their
+vertices, ``penalty.at: vertices``) the face value is the trapezoidal rule instead,
+Ψ̄_I(f) = (1/4) Σ_{4 vertices v} Ψ_I(x_v). It too integrates a linear function over a rectangle
+exactly, so G_k still reproduces constant gradients, and a boundary face belongs to one cell only,
+so the integration constraint holds with Ψ̄ in place of Ψ(x_f). The boundary rows
+Σ_f A_f Ψ̄_I(f) are then the penalty rows Σ_v w_v Ψ_I(x_v) of the vertex rule, and a homogeneous
+deformation is reproduced with a gap ∝ 1/β.
 """
 
 from __future__ import annotations
@@ -187,6 +195,76 @@ def cell_corners(X: np.ndarray, spacing) -> np.ndarray:
     return base + key * (h / 2)
 
 
+def face_rule(faces: Faces, vertex_faces, spacing) -> tuple[np.ndarray, sp.csr_matrix]:
+    """Quadrature points of the face values: face centres, and the vertices of ``vertex_faces``.
+
+    Parameters
+    ----------
+    faces : Faces
+    vertex_faces : (F_v,) int
+        Faces integrated by the trapezoidal rule (their four vertices); all others by the midpoint rule.
+    spacing : (3,) float
+        Cell edge lengths, cm.
+
+    Returns
+    -------
+    points : (F + V, 3) float
+        The F face centres, then the V distinct vertices of ``vertex_faces``, cm.
+    rule : CSR (F, F + V)
+        Face value = ``rule @`` (values at ``points``): 1 at the face's centre, or 1/4 at each of its
+        four vertices for ``vertex_faces``.
+    """
+    h = np.asarray(spacing, float)
+    nf = faces.centre.shape[0]
+    vf = np.unique(np.asarray(vertex_faces, np.int64))
+    mid = np.ones(nf, bool)
+    mid[vf] = False
+    fm = np.flatnonzero(mid)
+    if vf.size == 0:
+        return faces.centre, sp.csr_matrix((np.ones(nf), (fm, fm)), shape=(nf, nf))
+    # the two in-plane axes of each axis-k face and the four corner offsets (±1/2, ±1/2) along them
+    sign = np.array([[-1, -1], [1, -1], [-1, 1], [1, 1]], float) / 2
+    offsets = np.zeros((3, 4, 3))
+    for k in range(3):
+        i, j = [a for a in range(3) if a != k]
+        offsets[k][:, [i, j]] = sign * h[[i, j]]
+    pts = (faces.centre[vf][:, None, :] + offsets[faces.axis[vf]]).reshape(-1, 3)
+    key = np.rint(2 * (pts - pts.min(axis=0)) / h).astype(np.int64)   # half-voxel grid index
+    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    rows = np.concatenate([fm, np.repeat(vf, 4)])
+    cols = np.concatenate([fm, nf + inv.ravel()])
+    vals = np.concatenate([np.ones(fm.size), np.full(4 * vf.size, 0.25)])
+    rule = sp.csr_matrix((vals, (rows, cols)), shape=(nf, nf + first.size))
+    return np.concatenate([faces.centre, pts[first]]), rule
+
+
+def apply_rule(rule: sp.csr_matrix, values: sp.spmatrix) -> sp.csr_matrix:
+    """``rule @ values`` keeping every stored entry of the rows it combines (explicit zeros too).
+
+    SciPy's sparse product drops entries that come out 0, so Ψ (exactly 0 at some points where
+    ∂Ψ is not) would lose entries that its gradients keep; the assembly needs one pattern for both.
+
+    Parameters
+    ----------
+    rule : CSR (F, P)
+    values : sparse (P, N)
+
+    Returns
+    -------
+    CSR (F, N)
+    """
+    R = rule.tocoo()
+    M = sp.csr_matrix(values)
+    start, stop = M.indptr[R.col], M.indptr[R.col + 1]
+    count = stop - start
+    entry = np.repeat(start - np.concatenate([[0], np.cumsum(count)[:-1]]), count) + np.arange(count.sum())
+    rows = np.repeat(R.row, count)
+    out = sp.coo_matrix((np.repeat(R.data, count) * M.data[entry], (rows, M.indices[entry])),
+                        shape=(rule.shape[0], M.shape[1])).tocsr()
+    out.sort_indices()
+    return out
+
+
 def face_incidence(faces: Faces, volume: np.ndarray) -> list[sp.csr_matrix]:
     """Face–cell incidence matrices D_k with entries ±A_f/V_L (cm⁻¹).
 
@@ -243,9 +321,10 @@ class SCNI:
         Cell volumes V_L, cm³.
     faces : Faces
     psi_faces : CSR (F, N)
-        Ψ_I at the face centres.
+        Ψ_I on each face: at its centre, or the mean over its vertices on the ``vertex_faces`` of
+        :func:`build_scni`.
     dpsi_faces : list of 3 CSR (F, N) or None
-        ∂Ψ_I/∂X_k at the face centres (needed by the NSNI stabilisation).
+        ∂Ψ_I/∂X_k on each face, by the same rule (needed by the NSNI stabilisation).
     spacing : (3,) float, cm
     support : (3,) or (N, 3) float, cm
         RK support radius per axis.
@@ -299,7 +378,8 @@ def support_radius(spacing, a_over_h) -> np.ndarray:
     return a
 
 
-def build_scni(X, ijk, spacing, support, *, kernel="cubic", order=1, support_shape="box", face_gradients=False) -> SCNI:
+def build_scni(X, ijk, spacing, support, *, kernel="cubic", order=1, support_shape="box", face_gradients=False,
+               vertex_faces=None, faces: Faces | None = None) -> SCNI:
     """Build the SCNI operators of a pixel-point model.
 
     Parameters
@@ -316,6 +396,12 @@ def build_scni(X, ijk, spacing, support, *, kernel="cubic", order=1, support_sha
         Passed to :func:`pixmuscle.rk.shape_functions`.
     face_gradients : bool
         Also keep ∂Ψ/∂X_k at the face centres (for the NSNI stabilisation).
+    vertex_faces : (F_v,) int, optional
+        Boundary faces whose value is the mean over their four vertices (trapezoidal rule, for Ψ
+        and ∂Ψ/∂X_k) instead of the value at their centre: the end faces that the penalty holds at
+        their vertices (:func:`pixmuscle.mechanics.boundary.vertex_rule_faces`).
+    faces : Faces, optional
+        ``cell_faces(X, ijk, spacing)`` when already built (``vertex_faces`` index into it).
 
     Returns
     -------
@@ -325,16 +411,18 @@ def build_scni(X, ijk, spacing, support, *, kernel="cubic", order=1, support_sha
 
     X = np.asarray(X, float)
     h = np.asarray(spacing, float)
-    faces = cell_faces(X, ijk, h)
+    if faces is None:
+        faces = cell_faces(X, ijk, h)
     volume = np.full(X.shape[0], float(np.prod(h)))
-    res = shape_functions(X, faces.centre, support, kernel=kernel, order=order, support_shape=support_shape,
+    points, rule = face_rule(faces, np.zeros(0, np.int64) if vertex_faces is None else vertex_faces, h)
+    res = shape_functions(X, points, support, kernel=kernel, order=order, support_shape=support_shape,
                           gradient=face_gradients)
     if face_gradients:
         psi, dpsi = res
-        dpsi = [sp.csr_matrix(g) for g in dpsi]
+        dpsi = [apply_rule(rule, g) for g in dpsi]
     else:
         psi, dpsi = res, None
-    psi = sp.csr_matrix(psi)
+    psi = apply_rule(rule, psi)
     G = smoothed_gradients(face_incidence(faces, volume), psi)
     return SCNI(G=G, volume=volume, faces=faces, psi_faces=psi, dpsi_faces=dpsi, spacing=h,
                 support=np.asarray(support, float))

@@ -32,7 +32,7 @@ from ..model.model import Model
 from ..model.tissues import MUSCLE, NODE_TISSUES, TISSUE_NAMES
 from . import newton as _newton
 from .assembly import Assembler, support_pattern
-from .boundary import SIGN_CONVENTION, Constraints, build_constraints, penalty_number
+from .boundary import SIGN_CONVENTION, Constraints, build_constraints, penalty_number, vertex_rule_faces
 from .config import SolveConfig, SupportConfig
 from .ellipticity import acoustic_minimum, directions
 from .linsolve import make_solver
@@ -391,7 +391,10 @@ def build_system(model: Model, cfg: SolveConfig) -> tuple[MechanicalSystem, dict
     stab = cfg.stabilization.method != "none" and cfg.stabilization.coefficient > 0
     rk_kw = dict(kernel=cfg.support.kernel, order=cfg.support.order, support_shape=cfg.support.shape)
     sup, info["supports_enlarged"] = node_supports(model, cfg)
-    scni = build_scni(model.X, model.ijk, model.spacing, sup, face_gradients=stab, **rk_kw)
+    faces = cell_faces(model.X, model.ijk, np.asarray(model.spacing, float))
+    bcs = list(cfg.boundary_conditions)
+    scni = build_scni(model.X, model.ijk, model.spacing, sup, face_gradients=stab, faces=faces,
+                      vertex_faces=vertex_rule_faces(model, bcs, faces, at=cfg.penalty.at), **rk_kw)
     info["scni_s"] = time.perf_counter() - t0
     materials = make_materials(cfg.materials, projected=cfg.volumetric.method == "projected")
     ident = np.broadcast_to(np.eye(3), (model.n_nodes, 3, 3))
@@ -403,7 +406,7 @@ def build_system(model: Model, cfg: SolveConfig) -> tuple[MechanicalSystem, dict
         A0[idx] = materials[c].stress_tangent(np.ascontiguousarray(ident[idx]), **kw)[1]
     t3 = time.perf_counter()
     beta = cfg.penalty.beta if cfg.penalty.beta is not None else penalty_number(A0, model.spacing, cfg.penalty.factor)
-    constraints = build_constraints(model, list(cfg.boundary_conditions), scni.faces, sup, beta, at=cfg.penalty.at, **rk_kw)
+    constraints = build_constraints(model, bcs, scni.faces, sup, beta, at=cfg.penalty.at, **rk_kw)
     info["penalty_s"] = time.perf_counter() - t3
     t2 = time.perf_counter()
     patch = cfg.volumetric.patch if cfg.volumetric.method == "projected" else None
