@@ -23,9 +23,9 @@ def _bar_solve(factor, at):
     return solve(model, cfg)
 
 
-@pytest.fixture(scope="module", params=["auto", "vertices"])
+@pytest.fixture(scope="module", params=["auto", "centres"])
 def bars(request):
-    """The bar at each penalty factor, end sets held at their end-face centres (default) or vertices."""
+    """The bar at each penalty factor, end sets held at their end-face vertices (default) or centres."""
     return {f: _bar_solve(f, request.param) for f in FACTORS}
 
 

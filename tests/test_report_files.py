@@ -204,8 +204,8 @@ def test_xdmf_tensor6_order_unit():
 # ------------------------------------------------------------------------------------------ point data
 @pytest.fixture(scope="module")
 def clamped(tmp_path_factory):
-    """A small muscle block, both ends clamped at their end-face vertices, activated: results.h5 of a real
-    solve and its report."""
+    """A small muscle block, both ends clamped (by default at their end-face vertices), activated: results.h5
+    of a real solve and its report."""
     from pixmuscle.io.results import save_results
     from pixmuscle.mechanics.solve import solve
     from pixmuscle.model.tissues import MUSCLE
@@ -214,8 +214,7 @@ def clamped(tmp_path_factory):
     d = tmp_path_factory.mktemp("clamped")
     model = mask_model(np.ones((4, 4, 8), bool), (0.25, 0.25, 0.5), tissue=MUSCLE, fiber=(0.3, 0.0, 1.0))
     cfg = _cfg(steps=2, activation={"from": 0.0, "to": 0.6},
-               boundary_conditions=[{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]}],
-               penalty={"at": "vertices"})
+               boundary_conditions=[{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]}])
     path = save_results(d / "results.h5", solve(model, cfg), config=cfg)
     summary = make_report(path, d / "out", ReportConfig(dpi=30, slices=False, view3d=False, html=False))
     return path, summary, d / "out", cfg
@@ -224,8 +223,8 @@ def clamped(tmp_path_factory):
 def test_point_data_is_the_rk_field_and_holds_the_clamped_ends(clamped):
     """The VTU's point displacement is the model's own field Σ_J Ψ_J(x) d_J at the cell corners: every point
     of the clamped z faces, their outer edges and corners included, moves ≤ 1 % of the largest point
-    displacement with ``penalty.at: vertices`` (0.87 % here; a mean of nodal values: 33 %; the default penalty
-    at the end-face centres leaves the outer edge at 7.8 %), and at sample corners it equals Ψ computed here
+    displacement with the default penalty at the end-face vertices (0.83 % here; a mean of nodal values: 33 %;
+    ``penalty.at: centres`` leaves the outer edge at 7.8 %), and at sample corners it equals Ψ computed here
     from the RK shape functions with the solve's support."""
     from vtkmodules.util.numpy_support import vtk_to_numpy
 

@@ -11,28 +11,27 @@ and K in eq. (19): f_pen = β Ψ_cᵀ W (u^h − t g), K_pen = β Ψ_cᵀ W Ψ_c
 
 Constraint points and quadrature weights w_c (cm²):
 
-* end sets ``x_min, x_max, y_min, y_max, z_min, z_max`` with ``penalty.at = auto`` (default): the
-  centre of the node's boundary face on that end (X_I ± h_k/2 e_k), weight = the face area
-  h_i h_j. This is the one-point face quadrature of the boundary integral in eq. (9) on the actual
-  end surface of the voxel body, the same points at which SCNI integrates the boundary term of
-  the smoothed gradient, so the penalty rows Ψ(x_c) are SCNI's own boundary rows and a
-  homogeneous deformation is reproduced exactly at any β (the patch test). The field is held
-  only at those points: between them it stays within about 1 % on a clamped, activated
-  4 × 4 × 8 block, but on the outer edge of the face (half a voxel beyond the outermost centres,
-  where the RK field extrapolates the end layer's steep gradient; moment matrix well conditioned,
-  cond ≈ 2·10³) it moves 7.8 % of the largest point displacement, and still 7.4 % with a 10³ times
-  stiffer penalty: the constraint leaves the edge free, it is not a penalty error.
-* the same sets with ``penalty.at = vertices``: the vertices of those end faces, each once with
-  the quarter areas of the faces that share it summed (:func:`face_vertices`) — the trapezoidal
-  rule on the same surface. It holds the field on the whole face, outer edge included (the block:
-  0.87 % at factor 1, 0.01 % at 10³; the demo: 1.15 % of the largest point displacement). It has
-  fewer points than the two node layers whose shape functions reach the face, so it does not
-  over-constrain (its gap falls as 1/β for large β). But its rows are not SCNI's boundary rows:
-  a homogeneous stretch is reproduced only to 0.5 % in the displacement, whatever β (forces
-  within 0.05 %), and forces move by ~1 % (clamped active block +1.0 % against finite elements
-  instead of +0.8 %; tendon +0.37 % instead of +0.17 %). Face centres *and* vertices together,
-  or a 2 × 2 Gauss rule per face, have more points than those nodes (over-constrained: the
-  block's reaction rises 2.3–2.4 % from factor 1 to 10, the Gauss rule leaves the edge at 3.7 %).
+* end sets ``x_min, x_max, y_min, y_max, z_min, z_max`` with ``penalty.at = auto`` (default) or
+  ``vertices``: the vertices of the nodes' boundary faces on that end, each once with the quarter
+  areas of the faces that share it summed (:func:`face_vertices`) — the trapezoidal rule for the
+  boundary integral of eq. (9) on the actual end surface of the voxel body. SCNI integrates the
+  boundary term of the smoothed gradient on those faces by the same rule
+  (:func:`vertex_rule_faces`, :func:`pixmuscle.mechanics.scni.build_scni`), so the penalty rows
+  Σ_v w_v Ψ(x_v) are SCNI's own boundary rows and a homogeneous deformation is reproduced exactly
+  (the patch test: a roller stretch to round-off, its end gap ∝ 1/β). The field is held on the
+  whole face, outer edge included: on a clamped, activated 4 × 4 × 8 block every end-face point
+  moves 0.83 % of the largest point displacement at factor 1 (0.01 % at 10³); on the demo 1.12 %.
+  The rule has fewer points than the two node layers whose shape functions reach the face, so it
+  does not over-constrain (its gap falls as 1/β for large β).
+* the same sets with ``penalty.at = centres``: the centre of each of those faces (X_I ± h_k/2 e_k),
+  weight = the face area h_i h_j (the midpoint rule, SCNI's rule on every face). It too passes the
+  patch test, but it holds the field only at the centres: on the outer edge of the face (half a
+  voxel beyond the outermost centres, where the RK field extrapolates the end layer's steep
+  gradient) the block moves 7.8 % of the largest point displacement, still 7.4 % with a 10³ times
+  stiffer penalty, and the demo 23 %: the constraint leaves the edge free, it is not a penalty
+  error. Face centres *and* vertices together, or a 2 × 2 Gauss rule per face, have more points
+  than those node layers (over-constrained: the block's reaction rises 2.3–2.4 % from factor 1
+  to 10, the Gauss rule leaves the edge at 3.7 %).
 * any other node set, ``penalty.at = nodes``, and ``point`` conditions: the node itself,
   u^h(X_I); weight = the area of the cell's boundary faces (cm²), or V^(2/3) for a node with none
   (an interior node or a point constraint).
@@ -50,9 +49,9 @@ between 1 and 10 before that. At equilibrium
 the penalty traction is t_c = −β (u^h − g), so |u^h − g| / h_min ≈ |t_c| / (factor · M): the
 traction-to-modulus ratio (a strain measure) divided by the factor. With the default factor 1
 the gap is a fraction of the strain times the cell size; on a clamped, activated 4 × 4 × 8 block
-the reaction changes by 0.1 % between factor 1 and 10³ at the face centres (gap ratio 10.0 per
-tenfold β from factor 1), 1.5 % at the vertices (ratios 4.4, 7.1, 9.4), and the iterative solver
-needs the small factor.
+the reaction changes by 1.6 % between factor 1 and 10³ at the vertices (gap ratios 4.6, 7.1, 9.5
+per tenfold β), 0.1 % at the face centres (ratio 10.0; their constrained limit is 2.4 % softer:
+the edges are free), and the iterative solver needs the small factor.
 
 Reaction (sign convention of docs/architecture.md): the force the support exerts on the body,
 
@@ -282,6 +281,11 @@ def face_vertices(centre: np.ndarray, node: np.ndarray, spacing, axis: int):
     return pts[first], np.repeat(np.asarray(node, np.int64), 4)[first], weight
 
 
+def end_rule(at: str) -> str:
+    """Where end sets are held for ``penalty.at``: ``"vertices"`` (``auto``, ``vertices``), ``"centres"`` or ``"nodes"``."""
+    return "vertices" if at in ("auto", "vertices") else at
+
+
 def _end_faces(faces: Faces, idx: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
     """Face of each node of an end set on that end, and whether it is a boundary face.
 
@@ -300,7 +304,7 @@ def _end_faces(faces: Faces, idx: np.ndarray, name: str) -> tuple[np.ndarray, np
 def vertex_rule_faces(model, bcs: list[BoundaryCondition], faces: Faces, *, at: str = "auto") -> np.ndarray:
     """Boundary faces on which the penalty integrates by the vertex (trapezoidal) rule.
 
-    With ``at = "vertices"``: the end faces of every end set (``x_min`` … ``z_max``) that a boundary
+    With ``at = "auto"`` or ``"vertices"``: the end faces of every end set (``x_min`` … ``z_max``) that a boundary
     condition constrains, each once; SCNI must integrate its boundary term on these faces by the
     same rule (:func:`pixmuscle.mechanics.scni.build_scni`, ``vertex_faces``) so that the penalty
     rows equal SCNI's boundary rows. Empty otherwise.
@@ -310,7 +314,7 @@ def vertex_rule_faces(model, bcs: list[BoundaryCondition], faces: Faces, *, at: 
     (F_v,) int64
         Sorted face indices into ``faces``.
     """
-    if at != "vertices":
+    if end_rule(at) != "vertices":
         return np.zeros(0, np.int64)
     out = [np.zeros(0, np.int64)]
     n = np.asarray(model.X).shape[0]
@@ -365,10 +369,11 @@ def constraint_points(model, bcs: list[BoundaryCondition], faces: Faces, *, at: 
             if bc.nodes in END_SETS:
                 k, s = END_SETS[bc.nodes]
                 w = np.full(idx.size, vol / h[k])
-                if at in ("auto", "vertices"):
+                rule = end_rule(at)
+                if rule in ("centres", "vertices"):
                     _, on_end = _end_faces(faces, idx, bc.nodes)
                     where[on_end, k] += s * h[k] / 2
-                if at == "vertices":
+                if rule == "vertices":
                     vpts, vnode, vw = face_vertices(where[on_end], idx[on_end], h, k)
                     where = np.concatenate([vpts, where[~on_end]])
                     idx = np.concatenate([vnode, idx[~on_end]])

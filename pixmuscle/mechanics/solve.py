@@ -32,7 +32,7 @@ from ..model.model import Model
 from ..model.tissues import MUSCLE, NODE_TISSUES, TISSUE_NAMES
 from . import newton as _newton
 from .assembly import Assembler, support_pattern
-from .boundary import SIGN_CONVENTION, Constraints, build_constraints, penalty_number, vertex_rule_faces
+from .boundary import SIGN_CONVENTION, Constraints, build_constraints, end_rule, penalty_number, vertex_rule_faces
 from .config import SolveConfig, SupportConfig
 from .ellipticity import acoustic_minimum, directions
 from .linsolve import make_solver
@@ -427,27 +427,27 @@ def node_supports(model: Model, cfg: SolveConfig) -> tuple[np.ndarray, int]:
     """Per-node RK support radii (N, 3), cm: a = (a/h)·spacing, enlarged only where needed.
 
     Thin image features (a one-voxel strand, a diagonal chain left by coarsening) leave some
-    face centres or nodes (with ``penalty.at: vertices`` also cell corners) with a singular moment
-    matrix under the nominal support;
-    the supports of the nodes around them are enlarged locally
-    (:func:`pixmuscle.rk.covering_supports`) and the count is logged. Everywhere else the support is exactly the nominal one.
+    face centres or nodes (when end sets are held at their end-face vertices, the default, also cell
+    corners) with a singular moment matrix under the nominal support; the supports of the nodes
+    around them are enlarged locally (:func:`pixmuscle.rk.covering_supports`) and the count is
+    logged. Everywhere else the support is exactly the nominal one.
 
     Returns
     -------
     support : (N, 3) float
     n_enlarged : int
     """
-    return rk_supports(model, cfg.support, corners=cfg.penalty.at == "vertices")
+    return rk_supports(model, cfg.support, corners=end_rule(cfg.penalty.at) == "vertices")
 
 
 def rk_supports(model: Model, support: SupportConfig, *, corners: bool = False) -> tuple[np.ndarray, int]:
     """:func:`node_supports` for the ``solve.support`` section alone (what the report needs to
     evaluate a solve's RK field again: same inputs, same supports).
 
-    Covered: the SCNI face centres and the nodes; with ``corners`` (``penalty.at: vertices``, whose
-    penalty points are end-face vertices) also every cell corner. Covering the corners always would
-    enlarge supports beside thin features further (demo: up to 1.56× instead of 1.25× nominal, end
-    force +1.5 %), so it is done only where the solve needs it."""
+    Covered: the SCNI face centres and the nodes; with ``corners`` (``penalty.at`` ``auto`` or
+    ``vertices``, whose penalty points and SCNI end-face points are end-face vertices) also every
+    cell corner, which enlarges supports beside thin features further (demo: up to 1.56× instead of
+    1.25× nominal); ``penalty.at: centres`` or ``nodes`` need only the first two."""
     from ..rk import covering_supports
 
     nominal = support_radius(model.spacing, support.a_over_h)

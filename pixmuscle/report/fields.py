@@ -206,6 +206,7 @@ def rk_support(res) -> tuple[np.ndarray, dict]:
     from ..errors import InputError
     from ..mechanics.config import SupportConfig
     from ..mechanics.scni import support_radius
+    from ..mechanics.boundary import end_rule
     from ..mechanics.solve import rk_supports
 
     text = (res.meta or {}).get("config") or ""
@@ -214,7 +215,7 @@ def rk_support(res) -> tuple[np.ndarray, dict]:
     except yaml.YAMLError as exc:
         raise InputError(f"{(res.meta or {}).get('path', 'results')}: attribute config is not YAML: {exc}") from None
     penalty = raw.get("penalty") if isinstance(raw, dict) else None
-    corners = isinstance(penalty, dict) and penalty.get("at") == "vertices"
+    corners = end_rule(penalty.get("at", "auto") if isinstance(penalty, dict) else "auto") == "vertices"
     raw = raw.get("support") if isinstance(raw, dict) else None
     sc = parse_section(SupportConfig, raw or {}, "solve.support")
     m = res.model
@@ -243,7 +244,8 @@ def corner_displacements(res, steps: Sequence[int], points: np.ndarray, hexa: np
     u : (k, P, 3) float64, cm
     n_fallback : int
         Corners where the RK field is not defined (a singular moment matrix beside a one-voxel
-        strand; with ``penalty.at: vertices`` the solve's supports cover every corner): there
+        strand; when end sets are held at their end-face vertices, ``penalty.at`` ``auto`` or
+        ``vertices``, the solve's supports cover every corner): there
         ``u`` is the mean of the nodal displacements of the cells around the corner.
 
     Raises
