@@ -34,8 +34,9 @@ def _block_solve(h, steps, alpha_to):
 def test_clamped_active_block_matches_finite_elements_while_the_law_is_elliptic_and_warns_after():
     """h = 0.5 cm (144 nodes), the benchmark's ramp α 0 → 0.95 in 10 steps. Up to α = 0.285 the
     muscle law is strongly elliptic in the whole block and the answer is unique: F_z within 1 % of the
-    finite elements (+0.1, +0.4, +0.8 %: the coarse model's discretisation error; h = 0.25 is within
-    0.5 %). The small shear reaction F_x is 4–7 % low (h = 0.25: 4 %). At α = 0.95 the law is not
+    finite elements (−0.75, −0.13, +0.75 % with the ends held at their face vertices, the default;
+    +0.1, +0.4, +0.8 % at their face centres: the coarse model's discretisation error). The small
+    shear reaction F_x is within 3.4 % (face centres: 4–7 % low). At α = 0.95 the law is not
     elliptic near the clamps any more, and the solve says so."""
     res = _block_solve(0.5, 10, 0.95)
     R = np.asarray(res.reaction["z_max"])
