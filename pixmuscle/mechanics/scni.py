@@ -28,7 +28,7 @@ evaluated once and enters its two cells with opposite signs, the discrete diverg
 holds exactly (the "integration constraint" that makes SCNI pass the linear patch test).
 
 On chosen boundary faces (``vertex_faces``: the end faces whose penalty is integrated at their
-vertices, ``penalty.at: vertices``) the face value is the trapezoidal rule instead,
+vertices, ``penalty.at`` ``auto`` or ``vertices``) the face value is the trapezoidal rule instead,
 Ψ̄_I(f) = (1/4) Σ_{4 vertices v} Ψ_I(x_v). It too integrates a linear function over a rectangle
 exactly, so G_k still reproduces constant gradients, and a boundary face belongs to one cell only,
 so the integration constraint holds with Ψ̄ in place of Ψ(x_f). The boundary rows
@@ -195,33 +195,26 @@ def cell_corners(X: np.ndarray, spacing) -> np.ndarray:
     return base + key * (h / 2)
 
 
-def face_rule(faces: Faces, vertex_faces, spacing) -> tuple[np.ndarray, sp.csr_matrix]:
-    """Quadrature points of the face values: face centres, and the vertices of ``vertex_faces``.
+def face_vertex_rule(faces: Faces, vertex_faces: np.ndarray, spacing) -> tuple[np.ndarray, sp.csr_matrix]:
+    """Trapezoidal rule on chosen faces: their distinct vertices and the averaging matrix.
 
     Parameters
     ----------
     faces : Faces
     vertex_faces : (F_v,) int
-        Faces integrated by the trapezoidal rule (their four vertices); all others by the midpoint rule.
+        Faces (indices into ``faces``) whose value is the mean over their four vertices.
     spacing : (3,) float
         Cell edge lengths, cm.
 
     Returns
     -------
-    points : (F + V, 3) float
-        The F face centres, then the V distinct vertices of ``vertex_faces``, cm.
-    rule : CSR (F, F + V)
-        Face value = ``rule @`` (values at ``points``): 1 at the face's centre, or 1/4 at each of its
-        four vertices for ``vertex_faces``.
+    points : (V, 3) float
+        The distinct vertices of ``vertex_faces``, cm.
+    rule : CSR (F_v, V)
+        1/4 at each of the four vertices of each face: face value = ``rule @`` (values at ``points``).
     """
     h = np.asarray(spacing, float)
-    nf = faces.centre.shape[0]
-    vf = np.unique(np.asarray(vertex_faces, np.int64))
-    mid = np.ones(nf, bool)
-    mid[vf] = False
-    fm = np.flatnonzero(mid)
-    if vf.size == 0:
-        return faces.centre, sp.csr_matrix((np.ones(nf), (fm, fm)), shape=(nf, nf))
+    vf = np.asarray(vertex_faces, np.int64)
     # the two in-plane axes of each axis-k face and the four corner offsets (±1/2, ±1/2) along them
     sign = np.array([[-1, -1], [1, -1], [-1, 1], [1, 1]], float) / 2
     offsets = np.zeros((3, 4, 3))
@@ -229,13 +222,35 @@ def face_rule(faces: Faces, vertex_faces, spacing) -> tuple[np.ndarray, sp.csr_m
         i, j = [a for a in range(3) if a != k]
         offsets[k][:, [i, j]] = sign * h[[i, j]]
     pts = (faces.centre[vf][:, None, :] + offsets[faces.axis[vf]]).reshape(-1, 3)
+    if pts.shape[0] == 0:
+        return pts, sp.csr_matrix((0, 0))
     key = np.rint(2 * (pts - pts.min(axis=0)) / h).astype(np.int64)   # half-voxel grid index
     _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    rows = np.concatenate([fm, np.repeat(vf, 4)])
-    cols = np.concatenate([fm, nf + inv.ravel()])
-    vals = np.concatenate([np.ones(fm.size), np.full(4 * vf.size, 0.25)])
-    rule = sp.csr_matrix((vals, (rows, cols)), shape=(nf, nf + first.size))
-    return np.concatenate([faces.centre, pts[first]]), rule
+    rule = sp.csr_matrix((np.full(4 * vf.size, 0.25), (np.repeat(np.arange(vf.size), 4), inv.ravel())),
+                         shape=(vf.size, first.size))
+    return pts[first], rule
+
+
+def replace_rows(A: sp.spmatrix, rows: np.ndarray, B: sp.spmatrix) -> sp.csr_matrix:
+    """``A`` with its rows ``rows`` replaced by the rows of ``B`` (stored entries kept as they are).
+
+    Parameters
+    ----------
+    A : sparse (F, N)
+    rows : (R,) int, distinct
+    B : sparse (R, N)
+
+    Returns
+    -------
+    CSR (F, N)
+    """
+    A = sp.csr_matrix(A)
+    rows = np.asarray(rows, np.int64)
+    kept = np.setdiff1d(np.arange(A.shape[0]), rows)
+    order = np.empty(A.shape[0], np.int64)
+    order[kept] = np.arange(kept.size)
+    order[rows] = kept.size + np.arange(rows.size)
+    return sp.vstack([A[kept], sp.csr_matrix(B)], format="csr")[order]
 
 
 def apply_rule(rule: sp.csr_matrix, values: sp.spmatrix) -> sp.csr_matrix:
@@ -395,7 +410,7 @@ def build_scni(X, ijk, spacing, support, *, kernel="cubic", order=1, support_sha
     kernel, order, support_shape
         Passed to :func:`pixmuscle.rk.shape_functions`.
     face_gradients : bool
-        Also keep ∂Ψ/∂X_k at the face centres (for the NSNI stabilisation).
+        Also keep ∂Ψ/∂X_k on the faces (for the NSNI stabilisation).
     vertex_faces : (F_v,) int, optional
         Boundary faces whose value is the mean over their four vertices (trapezoidal rule, for Ψ
         and ∂Ψ/∂X_k) instead of the value at their centre: the end faces that the penalty holds at
@@ -414,15 +429,20 @@ def build_scni(X, ijk, spacing, support, *, kernel="cubic", order=1, support_sha
     if faces is None:
         faces = cell_faces(X, ijk, h)
     volume = np.full(X.shape[0], float(np.prod(h)))
-    points, rule = face_rule(faces, np.zeros(0, np.int64) if vertex_faces is None else vertex_faces, h)
-    res = shape_functions(X, points, support, kernel=kernel, order=order, support_shape=support_shape,
-                          gradient=face_gradients)
+    kw = dict(kernel=kernel, order=order, support_shape=support_shape, gradient=face_gradients)
+    res = shape_functions(X, faces.centre, support, **kw)
+    psi, dpsi = (res[0], list(res[1])) if face_gradients else (res, None)
+    vf = np.unique(np.asarray([] if vertex_faces is None else vertex_faces, np.int64))
+    if vf.size:
+        points, rule = face_vertex_rule(faces, vf, h)
+        res = shape_functions(X, points, support, **kw)
+        psi_v, dpsi_v = (res[0], res[1]) if face_gradients else (res, None)
+        psi = replace_rows(psi, vf, apply_rule(rule, psi_v))
+        if face_gradients:
+            dpsi = [replace_rows(g, vf, apply_rule(rule, gv)) for g, gv in zip(dpsi, dpsi_v, strict=True)]
     if face_gradients:
-        psi, dpsi = res
-        dpsi = [apply_rule(rule, g) for g in dpsi]
-    else:
-        psi, dpsi = res, None
-    psi = apply_rule(rule, psi)
+        dpsi = [sp.csr_matrix(g) for g in dpsi]
+    psi = sp.csr_matrix(psi)
     G = smoothed_gradients(face_incidence(faces, volume), psi)
     return SCNI(G=G, volume=volume, faces=faces, psi_faces=psi, dpsi_faces=dpsi, spacing=h,
                 support=np.asarray(support, float))
