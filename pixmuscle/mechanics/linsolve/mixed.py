@@ -216,7 +216,8 @@ class MixedBlockSolver(KrylovAMGSolver):
                 z = None
                 continue
             x = base + z[:n]
-            new = float(np.linalg.norm(b - self._A @ x))
+            res = b - self._A @ x
+            new = float(np.linalg.norm(res))
             if new <= rtol * bn or bn == 0.0:
                 status = "converged"
                 break
@@ -228,7 +229,7 @@ class MixedBlockSolver(KrylovAMGSolver):
                 target *= 0.5 * rtol * bn / new
             else:  # below the round-off floor of the mixed residual: refine on the condensed residual
                 base, z = x, None
-                rhs = np.concatenate([b - self._A @ x, np.zeros(A.c22.size)])
+                rhs = np.concatenate([res, np.zeros(A.c22.size)])
                 target = min(max(0.5 * rtol * bn / (new * lag), floor), 0.5)
         self.info["iterations"] = total
         self.info["krylov_iterations"] += total
