@@ -300,6 +300,7 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
             rows.append({"volumetric": method, "patch": None if patch is None else list(patch), "held": held,
                          "backend": backend, "penalty_beta": beta,
                          "bulk_scale": scale, "K_over_mu_muscle": round(BULK["muscle"] * scale / 5.26),
+                         "region_solves": bool(getattr(solver, "region_solves", False) and solver.info.get("region_nodes")),
                          "krylov_iterations": its, "status": status, "solve_s": round(time.perf_counter() - t, 1),
                          "setup_s": round(setup, 1), "default": bool(default)})
             print(json.dumps(rows[-1]), flush=True)
@@ -535,6 +536,8 @@ def main(argv=None):
                    help="--infsup: the single-node patches of held nodes are pressure unknowns, or stay in K_d")
     p.add_argument("--thresholds", type=float, nargs="+", default=[1e-3, 1e-2, 5e-2],
                    help="--infsup: count the eigenvalues below each of these (one LDLᵀ factorisation each)")
+    p.add_argument("--scales", type=float, nargs="+", default=[0.1, 1.0, 10.0],
+                   help="--conditioning: factors on every tissue's bulk modulus (1: the tissues' own K/mu)")
     p.add_argument("--variants", nargs="+", default=list(CONDITIONING_VARIANTS),
                    help="--conditioning: VOLUMETRIC[:PATCH]:BACKEND[:HELD], e.g. projected:2,2,3:mixed_amg:patch (HELD: volumetric.held)")
     args = p.parse_args(argv)
@@ -564,7 +567,8 @@ def main(argv=None):
                 r.setdefault("load_avg", record["load_avg"])
             path.write_text(json.dumps({**record, "command": command}, indent=1))
 
-        conditioning(args.conditioning, args.penalty, variants=args.variants, on_row=keep, previous=previous)
+        conditioning(args.conditioning, args.penalty, scales=tuple(args.scales), variants=args.variants, on_row=keep,
+                     previous=previous)
         return 0
     for size, fn, stem in ((args.probe_direct, probe_direct, "bench_solve_probe_direct"), (args.probe, probe, "bench_solve_probe")):
         if size:

@@ -63,6 +63,7 @@ from ..volumetric import shear_moduli
 from .base import BACKENDS
 from .cg_amg import CGAMGOptions, KrylovAMGSolver
 from .fgmres import fgmres
+from .subdomains import CorrectedVCycle, RegionSolves, constraint_regions
 
 
 class PatchDivergence:
@@ -133,6 +134,7 @@ class MixedAMGOptions(CGAMGOptions):
 
     schur_scale: float = field(default=0.5, metadata={"gt": 0, "doc": "c of the diagonal Schur complement diag(c/(μ_p V_p) + 1/(V_p K̄_p)): the typical eigenvalue of G K_d⁻¹ Gᵀ against the pressure mass"})
     restart: int = field(default=60, metadata={"range": (1, None), "doc": "FGMRES basis size"})
+    region_solves: bool = field(default=True, metadata={"doc": "after each V-cycle, solve the displacement block exactly on the node regions of the boundary conditions (the supports of their constraint points: end slabs, bone surfaces), where the stiff penalty couplings live (linsolve/subdomains.py)"})
 
 
 @BACKENDS.register("mixed_amg", options=MixedAMGOptions)
@@ -149,6 +151,9 @@ class MixedBlockSolver(KrylovAMGSolver):
         the pressure mass (≈ 0.5 for 2 × 2 × 3 patches on the voxel grid).
     restart : int
         FGMRES basis size.
+    region_solves : bool
+        Follow each V-cycle by exact solves of K_d on the regions of the boundary conditions
+        (:mod:`.subdomains`).
 
     Notes
     -----
@@ -159,11 +164,14 @@ class MixedBlockSolver(KrylovAMGSolver):
     name = "mixed_amg"
 
     def __init__(self, X, ijk, rtol: float = 1e-8, maxiter: int = 2000, schur_scale: float = 0.5, restart: int = 60,
-                 **kw):
+                 region_solves: bool = True, **kw):
         super().__init__(X, ijk, rtol=rtol, maxiter=maxiter, **kw)
         self.schur_scale = schur_scale
         self.restart = restart
+        self.region_solves = region_solves
         self._mu_node = None
+        self._regions = None
+        self.info.update(region_nodes=0)
 
     def _stand_in(self):
         return self._system.preconditioner_matrix(self._state, self.reach, volumetric="held")
@@ -188,6 +196,22 @@ class MixedBlockSolver(KrylovAMGSolver):
         w = float(np.mean(mu * vp)) / float(np.min(system.model.spacing))
         shat = w * w * (1.0 / D + self.schur_scale / (mu * vp))  # w² (D⁻¹ + G K_d⁻¹ Gᵀ), diagonal
         self._mixed = (_Mixed(Kd, G, D, w), _BlockTriangular(self._M, G, shat, w, Kd.shape[0]))
+
+    def _build(self):
+        super()._build()
+        vol = self._system.volumetric if self._system is not None else None
+        if not self.region_solves or vol is None:
+            return
+        t0 = time.perf_counter()
+        if self._regions is None:
+            self._regions = RegionSolves(self._system, constraint_regions(self._system, vol.held[vol.patch_of]),
+                                         self.ijk)
+            self.info["region_nodes"] = self._regions.n_nodes
+        self._regions.update(self._state)
+        self._M = CorrectedVCycle(self._M, self._regions)
+        dt = time.perf_counter() - t0
+        self._build_s += dt
+        self.info["setup_s"] += dt
 
     def _refresh(self):
         """After a rebuild of the AMG hierarchy the preconditioner must use the new one."""

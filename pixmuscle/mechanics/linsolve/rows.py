@@ -75,12 +75,18 @@ class RowAssembler:
         self.system = system
         self._rows = (3 * self.owned[:, None] + np.arange(3)).ravel()
 
-    def rows(self, state) -> sp.csr_matrix:
-        """The owned rows of the tangent at ``state``: CSR (3n × 3N), rows in the order of ``owned``, N/cm."""
+    def rows(self, state, pressure_free: bool = False) -> sp.csr_matrix:
+        """The owned rows of the tangent at ``state``: CSR (3n × 3N), rows in the order of ``owned``, N/cm.
+
+        With ``pressure_free`` (projected volumetric energy): the rows of the displacement block K_d
+        of the mixed form instead (:meth:`~pixmuscle.mechanics.solve.MechanicalSystem.stiffness`).
+        """
         data = self.base.copy()
-        self.asm.fill(self.g, state.A[self.cells], self.volume, out=data)
         vol = self.system.volumetric
-        if vol is not None:
+        pressure_free = pressure_free and vol is not None
+        A = self.system._held_volumetric(state, state.A) if pressure_free else state.A
+        self.asm.fill(self.g, A[self.cells], self.volume, out=data)
+        if vol is not None and not pressure_free:
             wv = (vol.volume / vol.vp[vol.patch_of])[self.cells]
             v = self.asm.patch_vectors(self.g, state.vol.a[self.cells], wv, self.local_patch)
             self.asm.fill_patches(v, (vol.vp * vol.kbar)[self.patches], data)
