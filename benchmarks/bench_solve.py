@@ -228,7 +228,7 @@ def probe(size: str, penalty: float | None) -> dict:
 #: the tissues' bulk moduli of Tables 1–2 (N/cm²), scaled by --conditioning
 BULK = {"muscle": 5000.0, "connective_tissue": 50000.0, "fat": 5000.0}
 #: the iterative backend that ``solve.solver.backend: auto`` takes above its direct limit
-AUTO_ITERATIVE = "cg_amg"
+AUTO_ITERATIVE = "mixed_amg"
 
 
 #: --conditioning variants, VOLUMETRIC[:PATCH]:BACKEND (the first two are the earlier records' rows)
