@@ -2,7 +2,9 @@
 
 The 1 × 1 × 3 patch pressure is not inf-sup stable on the voxel grid (``bench_solve.py --infsup``),
 2 × 2 × 3 is; a larger patch shares one pressure across more tissue, so it may cost accuracy where
-tissues meet. Each case is solved with both patches (every other setting at its default, direct solver):
+tissues meet. Each case is solved with the former default, 1 × 1 × 3 patches with nodes held at the
+node in single-node patches (``volumetric.held: own``), and the default, 2 × 2 × 3 patches with held
+nodes in their patches (``held: patch``); every other setting at its default, direct solver:
 
 ``locking``
     Clamped, stretched connective-tissue bar (``bench_locking.py``) at K/μ = 83, 833, 8,333 against
@@ -45,8 +47,14 @@ import numpy as np
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 OUT = ROOT / "benchmarks" / "results"
-PATCHES = {"1x1x3": (1, 1, 3), "2x2x3": (2, 2, 3)}
+#: label → (patch, volumetric.held)
+PATCHES = {"1x1x3": ((1, 1, 3), "own"), "2x2x3": ((2, 2, 3), "patch")}
 CASES = ("locking", "tendon", "columns", "block", "leg5k", "demo")
+
+
+def _volumetric(patch) -> dict:
+    shape, held = patch
+    return {"method": "projected", "patch": list(shape), "held": held}
 
 
 def _solve(model, patch, **keys):
@@ -54,7 +62,7 @@ def _solve(model, patch, **keys):
     from pixmuscle.verify.mechanics import _cfg
 
     t = time.perf_counter()
-    res = solve(model, _cfg(volumetric={"method": "projected", "patch": list(patch)}, **keys))
+    res = solve(model, _cfg(volumetric=_volumetric(patch), **keys))
     return res, round(time.perf_counter() - t, 2)
 
 
@@ -126,7 +134,7 @@ def case_leg5k(patch):
 
     from pixmuscle.mechanics.solve import solve
 
-    model, cfg = leg_case("5k", None, volumetric={"method": "projected", "patch": list(patch)},
+    model, cfg = leg_case("5k", None, volumetric=_volumetric(patch),
                           steps=10, activation={"from": 0.0, "to": 0.95}, solver={"backend": "direct"})
     t = time.perf_counter()
     res = solve(model, cfg)
@@ -140,7 +148,8 @@ def case_demo(patch):
     with tempfile.TemporaryDirectory() as tmp:
         t = time.perf_counter()
         proc = subprocess.run([sys.executable, "-m", "pixmuscle.cli", "-q", "run", "configs/demo.yaml", "-o", tmp,
-                               "--set", f"solve.volumetric.patch=[{','.join(map(str, patch))}]"],
+                               "--set", f"solve.volumetric.patch=[{','.join(map(str, patch[0]))}]",
+                               "--set", f"solve.volumetric.held={patch[1]}"],
                               cwd=ROOT, capture_output=True, text=True)
         if proc.returncode:
             return {"error": proc.stderr.strip().splitlines()[-1:]}
@@ -156,7 +165,7 @@ def write(results: dict, command: str) -> None:
     old = json.loads(path.read_text())["cases"] if path.exists() else {}
     old.update(results)
     path.write_text(json.dumps({"meta": meta, "cases": old}, indent=1))
-    lines = ["# Patch of the projected pressure: 1 × 1 × 3 against 2 × 2 × 3", "", f"Command: `{command}` "
+    lines = ["# Patch of the projected pressure: 1 × 1 × 3 (held: own) against 2 × 2 × 3 (held: patch)", "", f"Command: `{command}` "
              f"({meta['date_utc']}, load average {meta['load_average']})", "",
              "| case | 1 × 1 × 3 | 2 × 2 × 3 | 2 × 2 × 3 vs 1 × 1 × 3 |", "|---|---|---|---|"]
     for name in CASES:

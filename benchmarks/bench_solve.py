@@ -325,8 +325,9 @@ def infsup(size: str, penalty: float | None, patch=(1, 1, 3), held: str = "press
     near 0 are pressure modes that the displacement field can hardly produce; they make the
     iterations grow with K. Computed at F = I, α = 0.095 for patches of ``patch`` voxels.
 
-    ``held="pressure"``: the single-node patches of held nodes are pressure unknowns too;
-    ``held="displacement"``: their terms stay in K_d (as the ``mixed_amg`` solver treats them).
+    ``held="pressure"``: the single-node patches of held nodes (``volumetric.held: own``) are
+    pressure unknowns too; ``held="displacement"``: their terms stay in K_d; ``held="patch"``:
+    ``volumetric.held: patch`` (the default), held nodes stay in their ordinary patches.
 
     Small models (``dense``, default up to 2,000 nodes) get the whole spectrum from dense
     matrices. Any size gets the counts of eigenvalues below each threshold σ without computing
@@ -341,12 +342,13 @@ def infsup(size: str, penalty: float | None, patch=(1, 1, 3), held: str = "press
     from pixmuscle.mechanics.solve import build_system
     from pixmuscle.mechanics.volumetric import shear_moduli
 
-    model, cfg = leg_case(size, penalty, volumetric={"method": "projected", "patch": list(patch)})
+    model, cfg = leg_case(size, penalty, volumetric={"method": "projected", "patch": list(patch),
+                                                     "held": "patch" if held == "patch" else "own"})
     system, _ = build_system(model, cfg)
     state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.095)
     n, vol = model.n_nodes, system.volumetric
-    press = np.ones(vol.n_patches, bool) if held == "pressure" else ~vol.held
-    if held == "pressure":  # K_d without any patch term
+    press = np.ones(vol.n_patches, bool) if held in ("pressure", "patch") else ~vol.held
+    if held in ("pressure", "patch"):  # K_d without any patch term
         asm, base = system.assembler(None, patches=False)
         data = base.copy()
         asm.fill(system._g, state.A, system.scni.volume, out=data)
@@ -532,8 +534,9 @@ def main(argv=None):
                         "mass (--patch, --held; counts by inertia at any size, whole spectrum up to 2k nodes); "
                         "adds a row to results/bench_solve_infsup.json")
     p.add_argument("--patch", default="1,1,3", help="--infsup: patch size in voxels, PX,PY,PZ")
-    p.add_argument("--held", default="pressure", choices=("pressure", "displacement"),
-                   help="--infsup: the single-node patches of held nodes are pressure unknowns, or stay in K_d")
+    p.add_argument("--held", default="pressure", choices=("pressure", "displacement", "patch"),
+                   help="--infsup: the single-node patches of held nodes (volumetric.held: own) are pressure unknowns, "
+                        "or stay in K_d; patch: volumetric.held: patch (no single-node patches)")
     p.add_argument("--thresholds", type=float, nargs="+", default=[1e-3, 1e-2, 5e-2],
                    help="--infsup: count the eigenvalues below each of these (one LDLᵀ factorisation each)")
     p.add_argument("--scales", type=float, nargs="+", default=[0.1, 1.0, 10.0],
