@@ -24,8 +24,9 @@ from .outdir import prepare_output_dir
 #: bytes per node and stored state of a results file: u, d (3 each), Cauchy stress (6), max principal (1), float64
 RESULT_BYTES_PER_NODE_STEP = 13 * 8
 #: the rough cost of one load step: ``SECONDS_PER_STEP_REF * (n_nodes / NODES_REF) ** STEP_TIME_EXPONENT``,
-#: fitted to two measured sweeps at the default settings on 2 cores: 60 s for 10 steps at 5,460 nodes
-#: (docs/performance.md) and 15–25 min per step at 68,120 nodes (Example 2's coarse model, docs/examples.md)
+#: fitted to two measured sweeps on 2 cores: 60 s for 10 steps at 5,460 nodes (docs/performance.md) and
+#: 15–25 min per step at 68,120 nodes (Example 2's coarse model with cg_amg and 1 × 1 × 3 patches, the
+#: defaults then; docs/examples.md)
 SECONDS_PER_STEP_REF, NODES_REF, STEP_TIME_EXPONENT = 6.0, 5460, 2.1
 
 
@@ -75,7 +76,7 @@ def check_solve_size(out_path: Path, n_nodes: int, steps: int, key: str = "solve
 
 
 def describe_estimate(n_nodes: int, steps: int, seconds: float, nbytes: float) -> str:
-    """``"535 nodes × 10 load steps: about 2 s and 0.6 MB of results (rough estimate)"``."""
+    """``"535 nodes × 10 load steps: about 1 s and 0.6 MB of results (rough estimate)"``."""
     from .outdir import _mb
 
     return (f"{n_nodes} nodes × {steps} load steps: about {_duration(seconds)} and {_mb(nbytes)} of results "

@@ -199,7 +199,7 @@ class SolveConfig:
     solver: Any = field(default=AutoOptions(), metadata={
         "registry": BACKENDS, "default": AutoOptions(),
         "doc": f"{{backend: name, …options}}: linear-solver backend ({', '.join(BACKENDS.names())}; "
-               "pixmuscle.mechanics.linsolve), default auto: direct on small models, cg_amg on large ones"})
+               "pixmuscle.mechanics.linsolve), default auto: direct on small models, mixed_amg on large ones (cg_amg with the nodal volumetric energy)"})
 
     def __post_init__(self):
         act = dict(self.activation)

@@ -108,13 +108,13 @@ class MechanicalSystem:
     patch : (3,) int or None
         Patch size (voxels) of the projected volumetric energy (:mod:`.volumetric`); ``None``:
         the nodal volumetric energy of the paper.
-    held_patches : {"own", "patch"}
-        ``own``: nodes held by a boundary condition at the node keep a single-node patch;
-        ``patch``: they stay in their ordinary patch.
+    held_patches : {"patch", "own"}
+        ``patch`` (default, as ``solve.volumetric.held``): nodes held by a boundary condition at
+        the node stay in their ordinary patch; ``own``: they keep a single-node patch.
     """
 
     def __init__(self, model: Model, scni: SCNI, materials: dict, constraints: Constraints, A0: np.ndarray,
-                 stabilization=None, patch=None, held_patches: str = "own"):
+                 stabilization=None, patch=None, held_patches: str = "patch"):
         self.model = model
         self.scni = scni
         self.n_nodes = model.n_nodes

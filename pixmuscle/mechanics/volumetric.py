@@ -7,7 +7,7 @@ and still deform: the model *locks* (too stiff, more so the larger K/μ), and th
 constraints make the linear systems ill-conditioned.
 
 What. The volumetric energy is evaluated with the mean dilatation of a patch p of neighbouring
-cells (a box of ``patch`` voxels on the grid; default 1 × 1 × 3, three slices):
+cells (a box of ``patch`` voxels on the grid; default 2 × 2 × 3: two by two in-plane, three slices):
 
     θ_p = (1/V_p) Σ_{L∈p} V_L J_L,    V_p = Σ_{L∈p} V_L,    K̄_p = (1/V_p) Σ_{L∈p} V_L K_L,
 
@@ -18,10 +18,16 @@ patch, condensed patch by patch — the nodal-integration analogue of the mean-d
 element (Nagtegaal, Parks & Rice 1974; Simo, Taylor & Pister 1985) and of the pressure
 projection of Chen, Yoon, Wang & Liu (2000, CMAME 181:117–145) for nearly incompressible RKPM.
 One volumetric constraint per patch instead of per node removes the locking; a patch of one cell
-gives back the nodal formulation exactly. Patches along the slice axis are the default: the
-locking of the voxel models comes from the coarse slice direction (the Example-1 tendon: +5.8 % →
-+0.2 % against converged finite elements), and such patches do not straddle the in-plane
-interfaces of muscles and tissues, across which one shared pressure would be wrong.
+gives back the nodal formulation exactly. The patches span three slices because the locking of
+the voxel models comes from the coarse slice direction (the Example-1 tendon: +5.8 % → +0.2 %
+against converged finite elements with 1 × 1 × 3 patches). They span two voxels in-plane because a
+1 × 1 × 3 patch pressure is not inf-sup stable on the voxel grid: a pressure alternating between
+neighbouring voxel columns (a checkerboard) does not change the displacements, so no
+preconditioner of the mixed form (:mod:`.linsolve.mixed`) is robust in K/μ with it; 2 × 2 × 3
+patches are stable (``benchmarks/bench_solve.py --infsup``). A 2 × 2 × 3 patch shares one pressure across in-plane interfaces of muscles
+and tissues; against 1 × 1 × 3 it moves the forces of the verification cases by at most 0.03 %,
+the clamped active block's (α = 0.95) by −4.2 % and the demo's by −0.9 %
+(``benchmarks/bench_patch.py``, measured with ``held: own``; ``benchmarks/results/bench_patch.md``).
 
 Equations. With a_L = ∂J/∂F = J F⁻ᵀ at node L and the patch pressure p_p = K̄_p (θ_p − 1):
 
@@ -94,10 +100,12 @@ class PatchProjection:
     bulk : (N,) float
         Bulk modulus K_L of each node's material, N/cm².
     patch : (3,) int
-        Patch size in voxels per axis; patches are the boxes ⌊ijk / patch⌋ of the grid.
+        Patch size in voxels per axis; patches are the boxes ⌊ijk / patch⌋ of the grid. Default
+        (2, 2, 3), as ``solve.volumetric.patch``.
     single : (N,) bool, optional
         Nodes that keep a patch of their own (their nodal volumetric energy): the nodes held by a
-        boundary condition at the node itself. A patch that mixed a held node with free ones
+        boundary condition at the node itself when ``solve.volumetric.held`` is ``own``; none with
+        ``held: patch``, the default. A patch that mixed a held node with free ones
         would let the free half of the held node's cell trade volume with its neighbours at no
         volumetric cost, a mechanism that an active muscle pulling on its clamp exploits.
 
@@ -115,7 +123,7 @@ class PatchProjection:
         Patches of one held node (``single``).
     """
 
-    def __init__(self, ijk: np.ndarray, volume: np.ndarray, bulk: np.ndarray, patch=(1, 1, 3), single=None):
+    def __init__(self, ijk: np.ndarray, volume: np.ndarray, bulk: np.ndarray, patch=(2, 2, 3), single=None):
         ijk = np.asarray(ijk, np.int64)
         patch = np.broadcast_to(np.asarray(patch, np.int64), (3,))
         if np.any(patch < 1):
