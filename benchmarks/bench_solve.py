@@ -59,6 +59,8 @@ BACKENDS = {
     "direct_reuse": {"backend": "direct", "reuse_factorization": True},      # kept factors precondition CG
     "superlu": {"backend": "direct", "engine": "superlu"},
     "cg_amg": {"backend": "cg_amg"},
+    "mixed_amg": {"backend": "mixed_amg"},
+    "auto": {"backend": "auto"},                                              # the shipped default
 }
 
 
@@ -175,6 +177,8 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
         "final_relative_residual_max": float(np.max(final_residuals(res.newton))) if len(res.newton["step"]) else None,
         "material_s_per_evaluation": round(info["material_s"] / max(info["n_evaluate"], 1), 3),
         "sweep_s": round(wall, 1),
+        # every setting shipped: backend auto, default Newton tolerances and penalty
+        "defaults": backend == "auto" and newton_tol is None and eta_max is None and penalty is None,
         "force_z_max_N": [float(f) for f in res.force("z_max")],
         "peak_rss_GB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2),
     }
@@ -232,7 +236,8 @@ AUTO_ITERATIVE = "mixed_amg"
 
 
 #: --conditioning variants, VOLUMETRIC[:PATCH]:BACKEND (the first two are the earlier records' rows)
-CONDITIONING_VARIANTS = ("nodal:cg_amg", "projected:1,1,3:cg_amg", "projected:2,2,3:cg_amg", "projected:2,2,3:mixed_amg")
+CONDITIONING_VARIANTS = ("nodal:cg_amg", "projected:1,1,3:cg_amg", "projected:2,2,3:cg_amg", "projected:2,2,3:mixed_amg",
+                         "projected:2,2,3:mixed_amg:patch")
 
 
 def parse_variant(spec: str) -> tuple[str, tuple[int, int, int] | None, str, str]:
