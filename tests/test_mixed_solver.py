@@ -151,3 +151,32 @@ def test_region_solves_are_exact_on_their_regions_and_take_the_stiff_penalty():
         assert np.linalg.norm(x - ref) <= 1e-6 * np.linalg.norm(ref)
         its[regions_on] = solver.info["iterations"]
     assert its[True] < 0.7 * its[False]
+
+
+def test_probed_schur_diagonal_is_exact_when_every_patch_has_its_own_colour():
+    """On a body of 2 × 2 × 2 patch boxes the 8 parity colours give every patch its own colour, so
+    the probed diagonal equals the diagonal of the dense G M Gᵀ (M: the exact inverse of K_d)."""
+    from pixmuscle.mechanics.linsolve.mixed import probed_schur_diagonal
+    from pixmuscle.verify.mechanics import mask_model
+
+    model = mask_model(np.ones((4, 4, 6), bool), (0.15, 0.15, 0.4), tissue=1,
+                       fiber=np.array([np.sin(0.4), 0.0, np.cos(0.4)]))
+    cfg = _cfg(boundary_conditions=CLAMPED, volumetric={"method": "projected", "patch": [2, 2, 3], "held": "patch"})
+    system = build_system(model, cfg)[0]
+    state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.5, 0.6)
+    vol = system.volumetric
+    assert vol.n_patches == 8
+    main = system.tangent_operator(state).main
+    G = PatchDivergence(main.B, main.BT, state.vol.a, vol.Q)
+    Kd = system.stiffness(state, pressure_free=True).toarray()
+    Kinv = np.linalg.inv(0.5 * (Kd + Kd.T))
+
+    class Exact:
+        def __matmul__(self, r):
+            return Kinv @ r
+
+    box = np.zeros((vol.n_patches, 3), np.int64)
+    box[vol.patch_of] = model.ijk // np.array([2, 2, 3])
+    Gd = G.sparse().toarray()
+    exact = np.diag(Gd @ Kinv @ Gd.T)
+    assert np.allclose(probed_schur_diagonal(G, Exact(), box), exact, rtol=1e-10)
