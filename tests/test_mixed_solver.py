@@ -136,7 +136,7 @@ def test_region_solves_are_exact_on_their_regions_and_take_the_stiff_penalty():
     Kd = system.stiffness(state, pressure_free=True).tocsr()
     rng = np.random.default_rng(3)
     x = rng.standard_normal(Kd.shape[0])
-    for nodes, dofs, _, _, rows in solves.parts:
+    for _nodes, dofs, _, _, rows in solves.parts:
         assert np.allclose(rows @ x, (Kd @ x)[dofs], rtol=0, atol=1e-12 * np.abs(Kd @ x).max())
     r = rng.standard_normal(Kd.shape[0])
     z = solves.correct(r, np.zeros_like(r))
