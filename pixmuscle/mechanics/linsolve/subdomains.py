@@ -32,8 +32,8 @@ from .rows import RowAssembler
 
 def constraint_regions(system, held: np.ndarray | None = None) -> list[np.ndarray]:
     """Node sets of the stiff regions: the nodes in the supports of each boundary condition's
-    constraint points (one region per condition), plus, for held single-node patches, the nodes
-    of their supports (added to the region of the condition that holds them).
+    constraint points (one region per condition), plus, for held single-node patches, one region
+    of the nodes in their smoothed-gradient supports.
 
     Parameters
     ----------
