@@ -257,7 +257,7 @@ class MixedBlockSolver(KrylovAMGSolver):
 
     def _build(self):
         super()._build()
-        vol = self._system.volumetric if self._system is not None else None
+        vol = self._system.volumetric  # prepare() sets the system before any build
         if not self.region_solves or vol is None:
             return
         t0 = time.perf_counter()
