@@ -72,6 +72,33 @@ def test_fgmres_solves_a_nonsymmetric_system_with_a_changing_preconditioner():
     assert np.linalg.norm(A @ x - b) <= 1e-10 * np.linalg.norm(b)
 
 
+def test_fgmres_check_tightens_the_target_in_the_same_krylov_basis():
+    """A caller whose stopping test is another norm of the residual (here: the last rows weighted
+    10⁴ times, as the condensed residual of the mixed form weighs the pressure rows) gets an
+    iterate that meets it, in one Krylov basis (no restart), where the plain target stops short."""
+    rng = np.random.default_rng(2)
+    n = 120
+    A = np.diag(np.linspace(1.0, 50.0, n)) + rng.standard_normal((n, n)) / 10
+    b = np.r_[rng.standard_normal(n - 20), np.zeros(20)]  # as the mixed right-hand side [r; 0]
+    w = np.r_[np.ones(n - 20), 1e4 * np.ones(20)]
+
+    def weighted(x):
+        return np.linalg.norm(w * (b - A @ x)) / np.linalg.norm(b)
+
+    targets = []
+
+    def check(x):
+        err = weighted(x)
+        targets.append(np.linalg.norm(b - A @ x) / np.linalg.norm(b) * 0.5e-6 / err)
+        return None if err <= 1e-6 else targets[-1]
+
+    x0, its0, _ = fgmres(A, b, np.eye(n), 1e-6, 500, restart=500)
+    assert weighted(x0) > 1e-6  # the plain target is not enough for the weighted test
+    x, its, status = fgmres(A, b, np.eye(n), 1e-6, 500, restart=500, check=check)
+    assert status == "converged" and weighted(x) <= 1e-6
+    assert len(targets) >= 2 and its > its0 and its < n
+
+
 @pytest.mark.parametrize("bulk_scale", [1.0, 100.0])
 def test_mixed_solve_gives_the_condensed_newton_update(bulk_scale):
     """Δd of the mixed form equals the direct solution of the assembled condensed tangent K Δd = r

@@ -11,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 
-def fgmres(A, b: np.ndarray, M, rtol: float, maxiter: int, restart: int = 60, x0: np.ndarray | None = None):
+def fgmres(A, b: np.ndarray, M, rtol: float, maxiter: int, restart: int = 60, x0: np.ndarray | None = None,
+           check=None):
     """Solve A x = b by restarted flexible GMRES, preconditioned from the right by M.
 
     The preconditioner may change from one iteration to the next (an inner iteration, a
@@ -31,13 +32,20 @@ def fgmres(A, b: np.ndarray, M, rtol: float, maxiter: int, restart: int = 60, x0
     restart : int
         Basis vectors kept before a restart.
     x0 : (n,) float, optional
+    check : callable, optional
+        ``check(x) -> float | None``, called with the iterate whenever the residual meets the
+        target: ``None`` accepts it, a number is a new relative target to go on to (a caller
+        whose own stopping test is another norm of the residual). The iteration goes on in the
+        same Krylov basis, so a tightened target costs no restart (a restart forgets the
+        directions of the few outlying eigenvalues, which GMRES then has to find again).
 
     Returns
     -------
     x : (n,) float
     iterations : int
     status : str
-        ``"converged"``, ``"maxiter"`` or ``"breakdown"`` (a zero Hessenberg pivot before convergence).
+        ``"converged"``, ``"maxiter"``, ``"breakdown"`` (a zero Hessenberg pivot before convergence)
+        or ``"stalled"`` (``check`` asked for a target no tighter than the one met).
     """
     b = np.asarray(b, float)
     x = np.zeros_like(b) if x0 is None else np.array(x0, float)
@@ -50,6 +58,14 @@ def fgmres(A, b: np.ndarray, M, rtol: float, maxiter: int, restart: int = 60, x0
     while True:
         r = b - A @ x if its or x0 is not None else b.copy()
         beta = float(np.linalg.norm(r))
+        while beta <= target and check is not None:
+            more = check(x)
+            if more is None:
+                check = None
+            elif float(more) * bn >= target:
+                return x, its, "stalled"  # a check that does not tighten its target: no progress to make
+            else:
+                target = float(more) * bn
         if beta <= target:
             return x, its, "converged"
         if its >= maxiter:
@@ -90,12 +106,23 @@ def fgmres(A, b: np.ndarray, M, rtol: float, maxiter: int, restart: int = 60, x0
             g[j] = cs[j] * g[j]
             its += 1
             k = j + 1
+            if abs(g[j + 1]) <= target and check is not None and hn != 0.0:
+                more = check(x + Z[:k].T @ _least_squares(H, g, k))
+                if more is None:
+                    check = None  # accepted: stop here
+                else:
+                    target = min(target, float(more) * bn)
             if abs(g[j + 1]) <= target or its >= maxiter or hn == 0.0:
                 break
             V[j + 1] = w / hn
         if k:
-            y = np.linalg.solve(np.triu(H[:k, :k]), g[:k])
-            x += Z[:k].T @ y
+            x += Z[:k].T @ _least_squares(H, g, k)
         if breakdown:
             r = b - A @ x
             return x, its, "converged" if float(np.linalg.norm(r)) <= target else "breakdown"
+
+
+def _least_squares(H: np.ndarray, g: np.ndarray, k: int) -> np.ndarray:
+    """Coefficients y of the first ``k`` basis directions: the triangular solve R y = g of the
+    rotated Hessenberg matrix."""
+    return np.linalg.solve(np.triu(H[:k, :k]), g[:k])

@@ -181,7 +181,7 @@ class MixedAMGOptions(CGAMGOptions):
     """Options of ``solve.solver: {backend: mixed_amg, …}``."""
 
     schur_scale: float = field(default=0.5, metadata={"gt": 0, "doc": "with schur: mass, c of the diagonal Schur complement diag(c/(μ_p V_p) + 1/(V_p K̄_p)): the typical eigenvalue of G K_d⁻¹ Gᵀ against the pressure mass"})
-    restart: int = field(default=60, metadata={"range": (1, None), "doc": "FGMRES basis size"})
+    restart: int = field(default=200, metadata={"range": (1, None), "doc": "FGMRES basis size (vectors kept before a restart; memory 2 × restart × the unknowns)"})
     schur: str = field(default="probed", metadata={"choices": ("probed", "mass"), "doc": "diagonal Schur approximation: `probed`, the diagonal of G M Gᵀ (M the displacement block's preconditioner) by probing with 8 colours of the patch grid; `mass`, c/(μ_p V_p) with c = schur_scale"})
     region_solves: bool = field(default=True, metadata={"doc": "after each V-cycle, solve the displacement block exactly on the node regions of the boundary conditions (the supports of their constraint points: end slabs, bone surfaces), where the stiff penalty couplings live (linsolve/subdomains.py)"})
 
@@ -215,7 +215,7 @@ class MixedBlockSolver(KrylovAMGSolver):
 
     name = "mixed_amg"
 
-    def __init__(self, X, ijk, rtol: float = 1e-8, maxiter: int = 2000, schur_scale: float = 0.5, restart: int = 60,
+    def __init__(self, X, ijk, rtol: float = 1e-8, maxiter: int = 2000, schur_scale: float = 0.5, restart: int = 200,
                  schur: str = "probed", region_solves: bool = True, **kw):
         super().__init__(X, ijk, rtol=rtol, maxiter=maxiter, **kw)
         self.schur_scale = schur_scale
@@ -286,33 +286,40 @@ class MixedBlockSolver(KrylovAMGSolver):
         n = b.size
         bn = float(np.linalg.norm(b))
         A, P = self._mixed
-        rhs = np.concatenate([b, np.zeros(A.c22.size)])
-        z, base, x = None, np.zeros(n), np.zeros(n)
-        total, status, target, floor = 0, "maxiter", rtol, 1e-10
-        for attempt in range(8):  # the exact condensed residual decides (it lags the mixed one)
-            z, its, status = fgmres(A, rhs, P, target, self.maxiter - total, restart=self.restart, x0=z)
+        floor = 1e-10  # round-off floor of the mixed residual, relative
+        total, status, x = 0, "maxiter", np.zeros(n)
+        for attempt in range(8):  # refinements, when the condensed residual needs a mixed one below the floor
+            rhs = np.concatenate([b - self._A @ x if attempt else b, np.zeros(A.c22.size)])
+            rn = float(np.linalg.norm(rhs))
+            verdict = {}
+
+            def check(z, x=x, rn=rn, verdict=verdict):
+                """The exact condensed residual decides: None accepts z, else the tightened target."""
+                new = float(np.linalg.norm(b - self._A @ (x + z[:n])))
+                verdict["residual"] = new
+                if new <= rtol * bn or bn == 0.0:
+                    return None
+                mixed = float(np.linalg.norm(rhs - A @ z)) / rn
+                target = mixed * 0.5 * rtol * bn / new
+                if target < floor:
+                    verdict["refine"] = True
+                    return None
+                return target
+
+            target = min(0.5, rtol * bn / rn)
+            z, its, status = fgmres(A, rhs, P, target, self.maxiter - total, restart=self.restart, check=check)
             total += its
             if status == "maxiter" and not self._fresh and attempt == 0:
-                self._build()
+                self._build()  # a stale preconditioner: rebuild it and start again
                 self._refresh()
-                z = None
-                continue
-            x = base + z[:n]
-            res = b - self._A @ x
-            new = float(np.linalg.norm(res))
-            if new <= rtol * bn or bn == 0.0:
-                status = "converged"
+                z, its, status = fgmres(A, rhs, P, target, self.maxiter - total, restart=self.restart, check=check)
+                total += its
+            x = x + z[:n]
+            if status != "converged" or not verdict.get("refine"):
                 break
-            if status != "converged" or total >= self.maxiter:
+            if total >= self.maxiter:
+                status = "maxiter"
                 break
-            status = "maxiter"
-            lag = new / (target * float(np.linalg.norm(rhs)))
-            if target * 0.5 * rtol * bn / new >= floor:  # continue from the iterate with a tighter target
-                target *= 0.5 * rtol * bn / new
-            else:  # below the round-off floor of the mixed residual: refine on the condensed residual
-                base, z = x, None
-                rhs = np.concatenate([res, np.zeros(A.c22.size)])
-                target = min(max(0.5 * rtol * bn / (new * lag), floor), 0.5)
         self.info["iterations"] = total
         self.info["krylov_iterations"] += total
         self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
