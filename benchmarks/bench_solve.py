@@ -170,6 +170,7 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
         "direct_engine": info.get("linear_engine"),
         "factor_nnz_per_row": round(info["factor_nnz"] / (3 * model.n_nodes), 1) if info.get("factor_nnz") else None,
         "krylov_iterations_total": info.get("krylov_iterations"),
+        "krylov_iterations_per_system": [int(i) for i in lin] if backend != "direct" else None,
         "nnz_per_row": info.get("nnz_per_row"),
         "preconditioner_nnz_per_row": info.get("preconditioner_nnz_per_row"),
         "newton_iterations_per_step": res.iterations.tolist(), "newton_iterations_total": n_it,
@@ -440,6 +441,40 @@ def probe_direct(size: str, penalty: float | None) -> dict:
     return out
 
 
+def start_inertia(size: str, penalty: float | None, alphas=(0.0, 0.095)) -> dict:
+    """Negative eigenvalues of the condensed tangent at the start of the first load step (d = 0,
+    load factor 0.1) for each activation in ``alphas``: the inertia of PARDISO's LDLᵀ factors
+    (Sylvester's law). The deviatoric active fibre stress of α > 0, before the pressure has built
+    up, compresses the tissue across the fibres and can make the tangent indefinite along soft
+    lateral modes (the clamped block of docs/performance.md, "Newton convergence"), which an AMG
+    preconditioner built from a positive stand-in would not see. Whether it does on the leg is
+    what this counts."""
+    import scipy.sparse as sp
+
+    from pixmuscle.mechanics.pardiso import PardisoLDLT, SymmetricPattern
+    from pixmuscle.mechanics.solve import build_system
+
+    model, cfg = leg_case(size, penalty)
+    system, _ = build_system(model, cfg)
+    out = {"size": size, "nodes": model.n_nodes, "dofs": 3 * model.n_nodes, "rows": []}
+    pat = factor = None
+    for alpha in alphas:
+        state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, alpha)
+        K = sp.bsr_matrix(system.stiffness(state))
+        K.sort_indices()
+        t = time.perf_counter()
+        if factor is None:
+            pat = SymmetricPattern(K)
+            factor = PardisoLDLT(pat)
+        factor.factorize(pat.values(K))
+        pos, neg = factor.info["inertia"]
+        out["rows"].append({"alpha": alpha, "positive": pos, "negative": neg,
+                            "perturbed_pivots": factor.info["perturbed_pivots"], "factor_s": round(time.perf_counter() - t, 1)})
+        print(json.dumps(out["rows"][-1]), flush=True)
+    out.update(load_avg=os.getloadavg()[0], peak_rss_GB=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2))
+    return out
+
+
 EXPONENT_KEYS = ("build_s", "assembly_s_per_iteration", "linear_s_per_iteration", "cg_iterations_per_newton",
                  "newton_iterations_total", "sweep_s", "peak_rss_GB")
 
@@ -536,6 +571,9 @@ def main(argv=None):
     p.add_argument("--probe-direct", default=None, metavar="SIZE",
                    help="PARDISO's symbolic analysis of the full tangent at SIZE (predicted factor size and "
                         "flops); writes results/bench_solve_probe_direct_SIZE.json")
+    p.add_argument("--inertia", default=None, metavar="SIZE",
+                   help="negative eigenvalues of the tangent at the start of the first load step, α = 0 and 0.095 "
+                        "(PARDISO inertia) → results/bench_solve_inertia_SIZE.json")
     p.add_argument("--conditioning", default=None, metavar="SIZE",
                    help="Krylov iterations of one Newton system at SIZE with the bulk moduli x0.1, x1, x10 for each "
                         "--variants; writes results/bench_solve_conditioning_SIZE.json")
@@ -583,7 +621,8 @@ def main(argv=None):
         conditioning(args.conditioning, args.penalty, scales=tuple(args.scales), variants=args.variants, on_row=keep,
                      previous=previous)
         return 0
-    for size, fn, stem in ((args.probe_direct, probe_direct, "bench_solve_probe_direct"), (args.probe, probe, "bench_solve_probe")):
+    for size, fn, stem in ((args.probe_direct, probe_direct, "bench_solve_probe_direct"), (args.probe, probe, "bench_solve_probe"),
+                           (args.inertia, start_inertia, "bench_solve_inertia")):
         if size:
             res = fn(size, args.penalty)
             res["command"] = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
