@@ -138,7 +138,7 @@ def probed_schur_diagonal(G: PatchDivergence, M, box: np.ndarray) -> np.ndarray:
     (the probing estimator of Bekas, Kokiopoulou & Saad 2007).
 
     On the 5k leg (2 × 2 × 3 patches) the preconditioned Schur complement then spans a ratio of
-    40 between its extreme eigenvalues, against 347 for the scaled pressure mass c/(μ_p V_p) and
+    40 between its extreme eigenvalues (measured before the signs below), against 347 for the scaled pressure mass c/(μ_p V_p) and
     25 for the exact diagonal: the mass misses how much softer or stiffer a patch's surroundings
     are than the patch itself (connective-tissue patches next to muscle, partial patches at the
     surface).
