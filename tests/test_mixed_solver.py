@@ -228,12 +228,15 @@ def test_probed_schur_diagonal_stays_bounded_where_far_couplings_add_up():
         A = 1.0 / (1.0 + np.linalg.norm(box[:, None, :] - box[None, :, :], axis=-1)) ** 3
 
         class Dense:
+            def __init__(self, matrix):
+                self.matrix = matrix
+
             def __matmul__(self, x):
-                return A @ x
+                return self.matrix @ x
 
         colour = (box % 2) @ np.array([4, 2, 1])
         plain = np.array([(A @ (colour == c))[p] for p, c in enumerate(colour)])
-        signed = probed_schur_diagonal(Identity(), Dense(), box)
+        signed = probed_schur_diagonal(Identity(), Dense(A), box)
         assert np.median(plain / np.diag(A) - 1.0) > 0.45
         err = np.abs(signed / np.diag(A) - 1.0)
         assert np.median(err) < 0.1 and np.max(err) < 0.5
