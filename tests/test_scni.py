@@ -206,9 +206,8 @@ def test_end_faces_by_the_vertex_rule_keep_the_patch_test_and_equal_the_penalty_
     on those faces they differ (here by up to 17 % of the largest row): a homogeneous stretch is then
     reproduced only to ~0.5 %, whatever β."""
     from pixmuscle.mechanics.boundary import build_constraints, vertex_rule_faces
-    from pixmuscle.rk import shape_functions
-
     from pixmuscle.mechanics.solve import node_supports
+    from pixmuscle.rk import shape_functions
 
     m = mask_model(irregular_mask(8, 5), (0.1, 0.12, 0.25))
     cfg = parse_section(SolveConfig, {"boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]},

@@ -204,9 +204,9 @@ def rk_support(res) -> tuple[np.ndarray, dict]:
 
     from ..config import parse_section
     from ..errors import InputError
+    from ..mechanics.boundary import end_rule
     from ..mechanics.config import SupportConfig
     from ..mechanics.scni import support_radius
-    from ..mechanics.boundary import end_rule
     from ..mechanics.solve import rk_supports
 
     text = (res.meta or {}).get("config") or ""
