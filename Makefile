@@ -49,6 +49,9 @@ bench-scale: $(STAMP)
 	$(BIN)/python benchmarks/bench_solve.py --infsup 10k --patch 2,2,3 --held displacement --thresholds 0.01 0.05
 	$(BIN)/python benchmarks/bench_solve.py --infsup 20k --patch 2,2,3 --held patch
 	$(BIN)/python benchmarks/bench_solve.py --conditioning 20k --append --variants projected:2,2,3:mixed_amg:patch
+	$(BIN)/python benchmarks/bench_solve.py --conditioning 75k --append --variants projected:2,2,3:mixed_amg:patch --scales 1
+	$(BIN)/python benchmarks/bench_solve.py --inertia 5k
+	$(BIN)/python benchmarks/bench_solve.py --inertia 20k
 	$(BIN)/python benchmarks/bench_patch.py
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 75k:auto
 

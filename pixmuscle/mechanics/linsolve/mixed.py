@@ -35,9 +35,9 @@ G M_A⁻¹ Gᵀ in Ŝ is estimated by probing with 8 colours of the patch grid
 (``schur: probed``, the default; :func:`probed_schur_diagonal`, eight applications of M_A⁻¹ per
 Newton system); ``schur: mass`` takes the scaled pressure mass c/(μ_p V_p) instead
 (c = ``schur_scale``). On the leg with the default penalty number, FGMRES reaches 10⁻⁶ on the
-first Newton system (α = 0.095) in 33, 42 and 46 iterations at K/μ ≈ 95, 951 and 9,506 (5,460
-nodes; 79, 116 and 131 with ``schur: mass``) and in 51 at K/μ ≈ 951 (21,169 nodes; 205 with
-``schur: mass``), but in 467 on the 73,753-node leg (docs/performance.md, "What is not met yet").
+first Newton system (α = 0.095) in 32, 37 and 41 iterations at K/μ ≈ 95, 951 and 9,506 (5,460
+nodes; 79, 116 and 131 with ``schur: mass``), in 48 at K/μ ≈ 951 on 21,169 nodes (205 with
+``schur: mass``) and in 115 on 73,753 nodes (docs/performance.md, "What is not met yet").
 
 Scaling. The unknowns are Δd (cm) and q̃ = q / w (cm), and the second row is multiplied by w,
 w = mean_p(μ_p V_p) / s (N, s the smallest voxel edge): the system stays symmetric,
