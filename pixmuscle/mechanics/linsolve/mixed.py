@@ -55,9 +55,10 @@ the same Krylov basis with the target tightened by the lag it showed (:func:`.fg
 (load step 1, second Newton system, the first with the muscles active) the residual of a
 full-basis run stalls between iterations 70 and 120 and then falls fast (a few outlying
 eigenvalues), and FGMRES(60) restarted at each tightened target needed 255–294 iterations where
-one basis of 200 needs 120. Where the tightened target would fall below the round-off floor of the mixed
-residual, the solve refines instead (a new mixed solve for the condensed residual of the update
-so far, its target set by the lag of the last pass). Newton, line search and tolerances are those
+one basis of 200 needs 120. Where the tightened target would fall below the round-off floor of
+the mixed residual, or the true mixed residual has drifted from FGMRES's estimate of it, the
+solve refines instead (a new mixed solve for the condensed residual of the update so far, its
+target set by the lag of the last pass). Newton, line search and tolerances are those
 of the condensed system.
 
 References
@@ -139,9 +140,9 @@ def probed_schur_diagonal(G: PatchDivergence, M, box: np.ndarray) -> np.ndarray:
 
     On the 5k leg (2 × 2 × 3 patches) the preconditioned Schur complement then spans a ratio of
     40 between its extreme eigenvalues (measured before the signs below), against 347 for the
-    scaled pressure mass c/(μ_p V_p) and 25 for the exact diagonal: the mass misses how much softer or stiffer a patch's surroundings
-    are than the patch itself (connective-tissue patches next to muscle, partial patches at the
-    surface).
+    scaled pressure mass c/(μ_p V_p) and 25 for the exact diagonal: the mass misses how much
+    softer or stiffer a patch's surroundings are than the patch itself (connective-tissue patches
+    next to muscle, partial patches at the surface).
 
     Parameters
     ----------
