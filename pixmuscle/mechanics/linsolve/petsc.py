@@ -39,6 +39,29 @@ DEFAULT_OPTIONS = {"ksp_type": "gmres", "ksp_gmres_restart": 200, "pc_type": "ga
 _PREFIX = "pixmuscle_"
 
 
+def set_options(prefix: str, defaults: dict, options: dict | None) -> dict:
+    """Write ``options`` over ``defaults`` (names without the dash) into PETSc's options database
+    under ``prefix``, replacing whatever was set under it before (another solver of this process);
+    returns the merged mapping. ``true`` (or an empty value) sets a bare flag; whole floats are
+    written as integers."""
+    from petsc4py import PETSc
+
+    merged = {**defaults, **(options or {})}
+    db = PETSc.Options()
+    for key in db.getAll():  # forget what an earlier solver of this process set under the prefix
+        if key.startswith(prefix):
+            db.delValue(key)
+    for key, value in merged.items():
+        key = str(key).lstrip("-")
+        # true is a bare flag: PETSc reads "-ksp_monitor true" as a viewer named "true" and fails
+        # and the config reads numbers as floats: "0.0" is no value for an integer option
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        text = "" if value is None or value is True else "false" if value is False else str(value)
+        db.setValue(prefix + key, text)
+    return merged
+
+
 def available() -> bool:
     """True when petsc4py imports."""
     try:
@@ -118,11 +141,7 @@ class PETScSolver(LinearSolver):
         self.pos[dof] = np.arange(dof.size)
         self.lo, self.hi = 3 * int(self.bounds[self.rank]), 3 * int(self.bounds[self.rank + 1])
         self.rtol, self.maxiter = rtol, maxiter
-        opts = PETSc.Options()
-        for key, value in {**DEFAULT_OPTIONS, **(options or {})}.items():
-            key = str(key).lstrip("-")
-            opts.setValue(_PREFIX + key, "" if value is None else str(value).lower() if isinstance(value, bool) else str(value))
-        self.options = {**DEFAULT_OPTIONS, **(options or {})}
+        self.options = set_options(_PREFIX, DEFAULT_OPTIONS, options)
         self._rows = None
         self._ksp = None
         self.info.update(krylov_iterations=0, preconditioner_builds=0, ranks=self.size,
@@ -143,17 +162,7 @@ class PETScSolver(LinearSolver):
             self._rows = RowAssembler(system, self.owned)
             self.info["halo_cells"] = int(self._rows.cells.size - self.owned.size)
         K = self._rows.rows(state)
-        K.indices = self.pos[K.indices].astype(PETSc.IntType)
-        K.has_sorted_indices = False
-        K.sort_indices()
-        n_loc, n = self.hi - self.lo, self.dof.size
-        A = PETSc.Mat().createAIJ(size=((n_loc, n), (n_loc, n)), bsize=3, comm=self.comm,
-                                  csr=(K.indptr.astype(PETSc.IntType), K.indices, K.data))
-        A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-        A.assemble()
-        coords = PETSc.Vec().createMPI((n_loc, n), bsize=3, comm=self.comm)
-        coords.setArray(self.X[self.owned].ravel())
-        A.setNearNullSpace(PETSc.NullSpace().createRigidBody(coords))
+        A = self._displacement_matrix(K)
         if self._ksp is None:
             self._ksp = PETSc.KSP().create(comm=self.comm)
             self._ksp.setOptionsPrefix(_PREFIX)
@@ -167,6 +176,24 @@ class PETScSolver(LinearSolver):
         self.info["preconditioner_builds"] += 1
         self.info["setup_s"] = time.perf_counter() - t0
         self.info["nnz_local"] = int(K.nnz)
+
+    def _displacement_matrix(self, K):
+        """The owned rows ``K`` (CSR, 3n × 3N, model dof columns) as a distributed AIJ matrix (block
+        size 3, PETSc's dof order) with the rigid-body modes of the nodes as near-null space."""
+        PETSc = self.PETSc
+        K = K.copy()
+        K.indices = self.pos[K.indices].astype(PETSc.IntType)
+        K.has_sorted_indices = False
+        K.sort_indices()
+        n_loc, n = self.hi - self.lo, self.dof.size
+        A = PETSc.Mat().createAIJ(size=((n_loc, n), (n_loc, n)), bsize=3, comm=self.comm,
+                                  csr=(K.indptr.astype(PETSc.IntType), K.indices, K.data))
+        A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        A.assemble()
+        coords = PETSc.Vec().createMPI((n_loc, n), bsize=3, comm=self.comm)
+        coords.setArray(self.X[self.owned].ravel())
+        A.setNearNullSpace(PETSc.NullSpace().createRigidBody(coords))
+        return A
 
     def solve(self, r, rtol=None):
         t0 = time.perf_counter()
@@ -188,7 +215,6 @@ class PETScSolver(LinearSolver):
                               f"iterations (relative residual target {rtol:.1e}); try solver.petsc_options "
                               "{pc_type: hypre} or {ksp_gmres_restart: 500}, or check the boundary conditions")
         return x.reshape(np.shape(r))
-
 
     def statistics(self) -> dict:
         """Name, ``preconditioner_builds``, ``krylov_iterations`` (all solves) and ``ranks`` (MPI processes)."""

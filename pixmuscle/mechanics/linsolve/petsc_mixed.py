@@ -1,0 +1,289 @@
+r"""Backend ``petsc_mixed``: the projected-energy Newton systems in mixed displacement–pressure form,
+solved by PETSc (petsc4py) with a block-triangular (Schur) field-split preconditioner, on one or
+several MPI ranks.
+
+Why. The ``petsc`` backend (:mod:`.petsc`) solves the condensed tangent K = K_d + Gᵀ D G,
+D = diag(V_p K̄_p), whose patch terms grow with the bulk modulus, so its GAMG-preconditioned
+iterations grow with K/μ. This backend solves the same update in the scaled mixed form of
+``mixed_amg`` (:mod:`.mixed`, which explains the formulation, the scaling and why it is robust in
+K/μ with 2 × 2 × 3 patches):
+
+    [ K_d      w Gᵀ    ] [Δd]   [r]
+    [ w G   −w² D⁻¹    ] [ q̃] = [0],        w = mean_p(μ_p V_p) / s
+
+(s the smallest voxel edge, N/cm·cm³/cm = N; q̃ = D G Δd / w, cm). K_d is the tangent without the
+patch terms of the patches whose pressure is an unknown (every patch but the single-node patches of
+``volumetric.held: own``, whose terms stay in K_d).
+
+What is distributed. The displacement rows are those of ``petsc`` (slabs of whole voxel slices,
+:func:`.petsc.slab_partition`); each rank assembles its rows of K_d
+(:meth:`.rows.RowAssembler.rows` with ``pressure_free``). A pressure (patch) belongs to the rank of
+its first node in slab order (the lowest rank among its nodes); each rank assembles the rows of G of
+its own patches (:meth:`.mixed.PatchDivergence.sparse` restricted to them: the product still runs
+over the replicated (3N × N) smoothed-gradient operator, so this part costs O(N) time and memory per
+rank, like the replicated material evaluation), and w Gᵀ is PETSc's transpose of the distributed w G.
+The four blocks form a MatNest.
+
+The solver. PETSc's KSP FGMRES (the displacement block's preconditioner is a multigrid cycle, a
+preconditioner that need not be fixed) with ``PCFIELDSPLIT``: ``pc_fieldsplit_type schur``,
+``pc_fieldsplit_schur_fact_type upper``, i.e. P = [M_A, w Gᵀ; 0, −Ŝ] as in ``mixed_amg``; the
+displacement split (options prefix ``fieldsplit_u_``) is one application of GAMG on K_d with the
+rigid-body modes as near-null space (``ksp_type preonly``); the Schur split (``fieldsplit_p_``) is
+Jacobi on the user matrix −Ŝ (``pc_fieldsplit_schur_precondition user``), the scaled pressure mass
+
+    Ŝ = w² (D⁻¹ + c / (μ_p V_p)),    c = ``schur_scale``
+
+(``schur: mass`` of ``mixed_amg``). ``mixed_amg``'s default, the diagonal of G M_A Gᵀ probed with
+eight applications of M_A (:func:`.mixed.probed_schur_diagonal`), would need the field split's
+displacement preconditioner applied outside the KSP; it is not done here (serially it takes
+FGMRES from 79–131 to 32–41 iterations on the 5k leg). Nor are the exact solves on the boundary-
+condition regions that ``mixed_amg`` adds after each V-cycle.
+
+Stopping. Newton asks for a relative residual of the condensed system. The condensed residual of a
+mixed iterate, r − K Δd = r₁ + Gᵀ (D/w) r₂, can exceed the mixed one by up to K/μ (the pressure rows
+are weighted by D/w). So the mixed system is solved to the requested tolerance, the condensed
+residual of the update is computed with the matrix-free condensed tangent (replicated on every rank,
+:meth:`~pixmuscle.mechanics.solve.MechanicalSystem.tangent_operator`), and while it is too large the
+update is refined: a new mixed solve for the condensed residual so far, to a target tightened by the
+lag (condensed residual per mixed residual) the previous pass showed, at most eight passes.
+
+``solve.solver.petsc_options`` go to the options database over this backend's defaults
+(:data:`DEFAULT_OPTIONS`, prefix ``pixmuscle_mixed_``), e.g. ``{fieldsplit_u_pc_type: hypre}``.
+Without a projected volumetric energy there is no pressure, and the solver is ``petsc``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import field
+
+import numpy as np
+
+from ...errors import SolverError
+from ..volumetric import shear_moduli
+from .base import BACKENDS
+from .mixed import PatchDivergence
+from .petsc import DEFAULT_OPTIONS as CONDENSED_OPTIONS
+from .petsc import PETScOptions, PETScSolver, set_options
+
+#: PETSc options of the mixed solve unless ``petsc_options`` sets them (prefix ``pixmuscle_mixed_``)
+DEFAULT_OPTIONS = {"ksp_type": "fgmres", "ksp_gmres_restart": 200, "pc_type": "fieldsplit",
+                   "pc_fieldsplit_type": "schur", "pc_fieldsplit_schur_fact_type": "upper",
+                   "pc_fieldsplit_schur_precondition": "user",
+                   "fieldsplit_u_ksp_type": "preonly",
+                   **{"fieldsplit_u_" + k: v for k, v in CONDENSED_OPTIONS.items() if k.startswith(("pc_", "mg_"))},
+                   "fieldsplit_p_ksp_type": "preonly", "fieldsplit_p_pc_type": "jacobi"}
+
+_PREFIX = "pixmuscle_mixed_"
+
+#: relative target below which a mixed solve is not asked to go (round-off floor); refinement takes over
+_FLOOR = 1e-11
+
+
+@dataclasses.dataclass(frozen=True)
+class PETScMixedOptions(PETScOptions):
+    """Options of ``solve.solver: {backend: petsc_mixed, …}``."""
+
+    schur_scale: float = field(default=0.5, metadata={"gt": 0, "doc": "c of the diagonal Schur complement w²(c/(μ_p V_p) + 1/(V_p K̄_p)): the typical eigenvalue of G K_d⁻¹ Gᵀ against the pressure mass"})
+
+
+@BACKENDS.register("petsc_mixed", options=PETScMixedOptions)
+class PETScMixedSolver(PETScSolver):
+    """PETSc FGMRES + Schur field split on the mixed form (see the module docstring).
+
+    Parameters
+    ----------
+    X : (N, 3) float
+        Node coordinates, cm.
+    ijk : (N, 3) int
+        Voxel indices.
+    rtol : float
+        Relative condensed residual when the caller gives none.
+    maxiter : int
+        Krylov iterations per linear solve, all refinement passes together.
+    options : dict, optional
+        PETSc options (names without the dash), over :data:`DEFAULT_OPTIONS` for the mixed solve
+        and over :data:`.petsc.DEFAULT_OPTIONS` for the condensed one (no projected energy).
+    schur_scale : float
+        c in Ŝ = w² (D⁻¹ + c/(μ_p V_p)).
+    """
+
+    name = "petsc_mixed"
+
+    def __init__(self, X, ijk, rtol: float = 1e-10, maxiter: int = 2000, options: dict | None = None,
+                 schur_scale: float = 0.5):
+        super().__init__(X, ijk, rtol=rtol, maxiter=maxiter, options=options)
+        self.mixed_options = set_options(_PREFIX, DEFAULT_OPTIONS, options)
+        self.schur_scale = float(schur_scale)
+        self._mixed = None
+        self._press = None
+        self._gather = None
+        self.info.update(refinements=0, pressures=0)
+
+    @classmethod
+    def from_options(cls, opts: PETScMixedOptions, X, *, ijk=None, width=(4, 4, 4)) -> PETScMixedSolver:
+        if ijk is None:
+            raise ValueError("petsc_mixed needs the voxel indices ijk of the nodes")
+        return cls(X, ijk, rtol=opts.rtol, maxiter=opts.maxiter, options=dict(opts.petsc_options),
+                   schur_scale=opts.schur_scale)
+
+    def _pressure_partition(self, vol):
+        """PETSc order of the pressure unknowns: the free patches by owning rank (the lowest rank
+        among their nodes). Returns the free patches in that order and the bounds per rank."""
+        rank_of_node = np.empty(self.dof.size // 3, np.int64)
+        rank_of_node[self.order] = np.repeat(np.arange(self.size), np.diff(self.bounds))
+        owner = np.full(vol.n_patches, self.size, np.int64)
+        np.minimum.at(owner, vol.patch_of, rank_of_node)
+        free = np.flatnonzero(~vol.held)
+        by_rank = np.argsort(owner[free], kind="stable")
+        patches = free[by_rank]
+        bounds = np.searchsorted(owner[patches], np.arange(self.size + 1), side="left")
+        return patches, bounds
+
+    def prepare(self, system, state):
+        vol = system.volumetric
+        if vol is None or state.vol is None or bool(np.all(vol.held)):
+            self._mixed = None
+            super().prepare(system, state)
+            return
+        PETSc = self.PETSc
+        t0 = time.perf_counter()
+        if self._rows is None:
+            from .rows import RowAssembler
+
+            self._rows = RowAssembler(system, self.owned)
+            self.info["halo_cells"] = int(self._rows.cells.size - self.owned.size)
+        if self._press is None:
+            patches, bounds = self._pressure_partition(vol)
+            self._press = (patches, bounds, patches[bounds[self.rank]:bounds[self.rank + 1]])
+            self._mu_node = shear_moduli(system.A0)
+            self.info["pressures"] = int(patches.size)
+        patches, pbounds, mine = self._press
+        n_loc, n = self.hi - self.lo, self.dof.size
+        m_loc, m = mine.size, patches.size
+        p0 = int(pbounds[self.rank])
+
+        Kd = self._rows.rows(state, pressure_free=True)
+        A00 = self._displacement_matrix(Kd)
+        full = system.tangent_operator(state)  # the condensed tangent, matrix-free: the stopping test
+        Q = vol.Q[mine]
+        vp, kbar = vol.vp[mine], vol.kbar[mine]
+        mu = Q @ self._mu_node
+        D = vp * kbar
+        # w from all pressures (every rank the same number): mean_p(μ_p V_p) / s
+        mu_all = vol.Q[patches] @ self._mu_node
+        w = float(np.mean(mu_all * vol.vp[patches])) / float(np.min(system.model.spacing))
+        G = (w * PatchDivergence(full.main.B, full.main.BT, state.vol.a, Q).sparse()).tocsr()
+        G.indices = self.pos[G.indices]
+        G.has_sorted_indices = False
+        G.sort_indices()
+        A10 = PETSc.Mat().createAIJ(size=((m_loc, m), (n_loc, n)), comm=self.comm,
+                                    csr=(G.indptr.astype(PETSc.IntType), G.indices.astype(PETSc.IntType), G.data))
+        A10.assemble()
+        A01 = A10.transpose(PETSc.Mat())  # a new matrix (without one petsc4py transposes in place)
+        A11 = self._diagonal(-w * w / D, p0, m)
+        S = self._diagonal(-w * w * (1.0 / D + self.schur_scale / (mu * vp)), p0, m)  # −Ŝ: S itself is negative
+        A = PETSc.Mat().createNest([[A00, A01], [A10, A11]], comm=self.comm)
+        A.assemble()
+
+        isu, isp = A.getNestISs()[0]
+        isu.compose("nearnullspace", A00.getNearNullSpace())
+        if self._mixed is not None:
+            self._mixed["ksp"].destroy()
+        ksp = PETSc.KSP().create(comm=self.comm)
+        ksp.setOptionsPrefix(_PREFIX)
+        ksp.setOperators(A)
+        pc = ksp.getPC()
+        pc.setType("fieldsplit")
+        pc.setFieldSplitIS(("u", isu), ("p", isp))
+        pc.setFieldSplitType(PETSc.PC.CompositeType.SCHUR)
+        pc.setFieldSplitSchurFactType(PETSc.PC.SchurFactType.UPPER)
+        pc.setFieldSplitSchurPreType(PETSc.PC.SchurPreType.USER, S)
+        ksp.setFromOptions()
+        b = PETSc.Vec().createMPI((n_loc + m_loc, PETSc.DECIDE), comm=self.comm)  # per rank: [u; p] owned
+        z = b.duplicate()
+        start = b.getOwnershipRange()[0]
+        if self._gather is None:  # the displacement part of a solution to every rank
+            xu = PETSc.Vec().createMPI((n_loc, n), comm=self.comm)
+            self._gather = (xu, *PETSc.Scatter.toAll(xu))
+        self._mixed = {"ksp": ksp, "A": A, "b": b, "z": z, "t": b.duplicate(), "u": isu.getIndices() - start,
+                       "K": full, "blocks": (A00, A01, A10, A11, S)}
+        self.info["preconditioner_builds"] += 1
+        self.info["setup_s"] = time.perf_counter() - t0
+        self.info["nnz_local"] = int(Kd.nnz + 2 * G.nnz)
+
+    def _diagonal(self, values: np.ndarray, start: int, size: int):
+        """A distributed diagonal AIJ matrix with the owned ``values`` from global row ``start``."""
+        PETSc = self.PETSc
+        k = values.size
+        M = PETSc.Mat().createAIJ(size=((k, size), (k, size)), comm=self.comm,
+                                  csr=(np.arange(k + 1, dtype=PETSc.IntType),
+                                       (start + np.arange(k)).astype(PETSc.IntType), np.asarray(values, float)))
+        M.assemble()
+        return M
+
+    def solve(self, r, rtol=None):
+        if self._mixed is None:
+            return super().solve(r, rtol)
+        t0 = time.perf_counter()
+        rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
+        mx = self._mixed
+        ksp, A, b, z, t, iu, K = mx["ksp"], mx["A"], mx["b"], mx["z"], mx["t"], mx["u"], mx["K"]
+        r = np.asarray(r, float)
+        rr = r.ravel()
+        bn = float(np.linalg.norm(rr))
+        x = np.zeros(rr.size)
+        own = self.dof[self.lo:self.hi]
+        total, lag, status, passes = 0, 1.0, "maxiter", 0
+        res, rn = rr, bn
+        self.info["passes"] = []  # (mixed target, iterations, condensed relative residual after) per pass
+        while passes < 8 and total < self.maxiter:
+            if rn <= rtol * bn:
+                status = "converged"
+                break
+            # the first pass asks the mixed residual for the condensed target; a refinement asks for
+            # what the lag of the last pass says the condensed target needs
+            target = rtol if passes == 0 else min(0.5, max(0.5 * rtol * bn / (rn * lag), _FLOOR))
+            barr = b.getArray()
+            barr[:] = 0.0
+            barr[iu] = res[own]
+            b.setArray(barr)
+            ksp.setTolerances(rtol=target, atol=0.0, max_it=self.maxiter - total)
+            ksp.solve(b, z)
+            its = int(ksp.getIterationNumber())
+            reason = int(ksp.getConvergedReason())
+            total += its
+            passes += 1
+            if reason < 0:
+                status = f"diverged (PETSc reason {reason})"
+                break
+            A.mult(z, t)
+            t.aypx(-1.0, b)  # t = b − A z, the true mixed residual
+            mixed = t.norm()
+            xu, gather, xall = self._gather
+            xu.setArray(z.getArray()[iu])
+            gather.scatter(xu, xall, addv=False, mode=self.PETSc.ScatterMode.FORWARD)
+            x[self.dof] += xall.getArray()
+            res = rr - K @ x
+            new = float(np.linalg.norm(res))
+            lag = new / max(mixed, 1e-300)  # condensed residual per mixed residual
+            self.info["passes"].append((target, its, new / max(bn, 1e-300)))
+            rn = new
+        else:
+            if rn <= rtol * bn:
+                status = "converged"
+        self.info["iterations"] = total
+        self.info["krylov_iterations"] += total
+        self.info["refinements"] += max(passes - 1, 0)
+        self.info["solve_s"] = time.perf_counter() - t0
+        if status != "converged":
+            raise SolverError(f"petsc_mixed: KSP fgmres with the Schur field split {status} after {total} iterations "
+                              f"in {passes} passes (condensed relative residual {rn / max(bn, 1e-300):.1e}, target "
+                              f"{rtol:.1e}); try solver.petsc_options {{fieldsplit_u_pc_type: hypre}} or the "
+                              "condensed backend petsc, or check the boundary conditions")
+        return x.reshape(r.shape)
+
+    def statistics(self) -> dict:
+        """As ``petsc``, plus ``refinements`` (mixed re-solves for the condensed residual, all solves)."""
+        return super().statistics() | {"refinements": self.info["refinements"]}
