@@ -50,7 +50,7 @@ dataclass (:mod:`.base`); the package imports its modules when it loads, the con
     block-triangular; GAMG on the displacement block without patch terms, Jacobi on the scaled
     pressure mass for the Schur complement), refined until the condensed residual meets the target.
     On the first Newton system of the 224-node clamped test body 96 and 92 iterations at K × 1 and
-    × 10 (condensed ``petsc``: 695, and no convergence at × 10; docs/petsc.md).
+    × 10 (condensed ``petsc``: 680, and no convergence at × 10; docs/petsc.md).
 ``auto`` (the default)
     ``direct`` up to ``direct_max_dofs`` unknowns (15k nodes with PARDISO, 4k with SuperLU),
     ``mixed_amg`` above (:mod:`.auto`).

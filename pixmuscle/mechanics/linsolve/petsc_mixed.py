@@ -52,7 +52,7 @@ tests/test_mixed_solver.py, penalty β fixed at 3·10⁴ N/cm³, to 10⁻⁸ of 
 one rank): 96 iterations in three passes at the tissues' K/μ and 92 in two at K × 10; with an
 exact solve of K_d instead of GAMG (``fieldsplit_u_pc_type: lu``) 25 and 25 in one pass, so the
 Schur approximation is sound and the count is the GAMG cycle's. The condensed ``petsc`` backend
-needs 695 GMRES iterations at K × 1 and breaks down at K × 10. With the default penalty the
+needs 680 GMRES iterations at K × 1 and breaks down at K × 10. With the default penalty the
 penalty number β scales with the largest modulus, i.e. with K, and that puts a K-scaled term into
 K_d: the iterations then grow (371 → 1,853 with GAMG), as they do for ``mixed_amg`` without its
 region solves.
