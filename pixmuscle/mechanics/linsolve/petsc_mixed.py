@@ -76,6 +76,7 @@ from .base import BACKENDS
 from .mixed import PatchDivergence
 from .petsc import DEFAULT_OPTIONS as CONDENSED_OPTIONS
 from .petsc import PETScOptions, PETScSolver, set_options
+from .subdomains import constraint_regions
 
 #: PETSc options of the mixed solve unless ``petsc_options`` sets them (prefix ``pixmuscle_mixed_``)
 DEFAULT_OPTIONS = {"ksp_type": "fgmres", "ksp_gmres_restart": 200, "pc_type": "fieldsplit",
@@ -84,6 +85,19 @@ DEFAULT_OPTIONS = {"ksp_type": "fgmres", "ksp_gmres_restart": 200, "pc_type": "f
                    "fieldsplit_u_ksp_type": "preonly",
                    **{"fieldsplit_u_" + k: v for k, v in CONDENSED_OPTIONS.items() if k.startswith(("pc_", "mg_"))},
                    "fieldsplit_p_ksp_type": "preonly", "fieldsplit_p_pc_type": "jacobi"}
+
+#: the displacement split with region solves (``region_solves``, the default): a multiplicative
+#: PCCOMPOSITE of GAMG (sub-PC 0, options under ``fieldsplit_u_sub_0_``) and exact solves on the
+#: boundary-condition regions (sub-PC 1, PCASM with one local subdomain per region, under
+#: ``fieldsplit_u_sub_1_``). The two sub-PCs are added in code, not by ``pc_composite_pcs``:
+#: PCFIELDSPLIT reads the split's options twice (once for the Schur complement's inner KSP), and
+#: PCCOMPOSITE adds the listed PCs at each reading.
+REGION_OPTIONS = {**{k: v for k, v in DEFAULT_OPTIONS.items() if not k.startswith(("fieldsplit_u_pc_", "fieldsplit_u_mg_"))},
+                  "fieldsplit_u_pc_type": "composite", "fieldsplit_u_pc_composite_type": "multiplicative",
+                  **{"fieldsplit_u_sub_0_" + k: v for k, v in CONDENSED_OPTIONS.items() if k.startswith(("pc_", "mg_"))},
+                  "fieldsplit_u_sub_1_pc_asm_type": "basic", "fieldsplit_u_sub_1_pc_asm_overlap": 0,
+                  "fieldsplit_u_sub_1_pc_asm_local_type": "multiplicative",
+                  "fieldsplit_u_sub_1_sub_ksp_type": "preonly", "fieldsplit_u_sub_1_sub_pc_type": "lu"}
 
 _PREFIX = "pixmuscle_mixed_"
 
@@ -96,6 +110,7 @@ class PETScMixedOptions(PETScOptions):
     """Options of ``solve.solver: {backend: petsc_mixed, …}``."""
 
     schur_scale: float = field(default=0.5, metadata={"gt": 0, "doc": "c of the diagonal Schur complement w²(c/(μ_p V_p) + 1/(V_p K̄_p)): the typical eigenvalue of G K_d⁻¹ Gᵀ against the pressure mass"})
+    region_solves: bool = field(default=True, metadata={"doc": "after each GAMG cycle on the displacement block, solve it exactly on the node regions of the boundary conditions (PCCOMPOSITE multiplicative of GAMG and PCASM, one local subdomain per region on each rank: the region's owned rows), where the penalty couplings, K-scaled with the default penalty number, live"})
 
 
 @BACKENDS.register("petsc_mixed", options=PETScMixedOptions)
@@ -117,26 +132,30 @@ class PETScMixedSolver(PETScSolver):
         and over :data:`.petsc.DEFAULT_OPTIONS` for the condensed one (no projected energy).
     schur_scale : float
         c in Ŝ = w² (D⁻¹ + c/(μ_p V_p)).
+    region_solves : bool
+        Displacement split: GAMG then exact (LU) solves on the boundary-condition regions
+        (:data:`REGION_OPTIONS`); without, GAMG alone (:data:`DEFAULT_OPTIONS`).
     """
 
     name = "petsc_mixed"
 
     def __init__(self, X, ijk, rtol: float = 1e-10, maxiter: int = 2000, options: dict | None = None,
-                 schur_scale: float = 0.5):
+                 schur_scale: float = 0.5, region_solves: bool = True):
         super().__init__(X, ijk, rtol=rtol, maxiter=maxiter, options=options)
-        self.mixed_options = set_options(_PREFIX, DEFAULT_OPTIONS, options)
+        self.mixed_options = set_options(_PREFIX, REGION_OPTIONS if region_solves else DEFAULT_OPTIONS, options)
         self.schur_scale = float(schur_scale)
         self._mixed = None
         self._press = None
         self._gather = None
-        self.info.update(refinements=0, pressures=0)
+        self._regions = None
+        self.info.update(refinements=0, pressures=0, region_rows=0)
 
     @classmethod
     def from_options(cls, opts: PETScMixedOptions, X, *, ijk=None, width=(4, 4, 4)) -> PETScMixedSolver:
         if ijk is None:
             raise ValueError("petsc_mixed needs the voxel indices ijk of the nodes")
         return cls(X, ijk, rtol=opts.rtol, maxiter=opts.maxiter, options=dict(opts.petsc_options),
-                   schur_scale=opts.schur_scale)
+                   schur_scale=opts.schur_scale, region_solves=opts.region_solves)
 
     def _pressure_partition(self, vol):
         """PETSc order of the pressure unknowns: the free patches by owning rank (the lowest rank
@@ -211,6 +230,7 @@ class PETScMixedSolver(PETScSolver):
         pc.setFieldSplitSchurFactType(PETSc.PC.SchurFactType.UPPER)
         pc.setFieldSplitSchurPreType(PETSc.PC.SchurPreType.USER, S)
         ksp.setFromOptions()
+        self._set_region_subdomains(system, pc)
         b = PETSc.Vec().createMPI((n_loc + m_loc, PETSc.DECIDE), comm=self.comm)  # per rank: [u; p] owned
         z = b.duplicate()
         start = b.getOwnershipRange()[0]
@@ -222,6 +242,38 @@ class PETScMixedSolver(PETScSolver):
         self.info["preconditioner_builds"] += 1
         self.info["setup_s"] = time.perf_counter() - t0
         self.info["nnz_local"] = int(Kd.nnz + 2 * G.nnz)
+
+    def _set_region_subdomains(self, system, pc) -> None:
+        """With region solves (:data:`REGION_OPTIONS`: the displacement split's PC is a composite
+        whose sub-PCs the options do not list), add GAMG and PCASM to it and give PCASM its
+        subdomains: on this rank, for each region of :func:`.subdomains.constraint_regions`, the
+        region's dofs among the owned rows (PETSc displacement numbering); regions without an owned
+        row are left out, and a rank without any has one empty subdomain."""
+        opts = self.mixed_options
+        if str(opts.get("fieldsplit_u_pc_type")) != "composite" or "fieldsplit_u_pc_composite_pcs" in opts:
+            return
+        PETSc = self.PETSc
+        if self._regions is None:
+            vol = system.volumetric
+            sets = []
+            for nodes in constraint_regions(system, vol.held[vol.patch_of]):
+                rows = self.pos[(3 * nodes[:, None] + np.arange(3)).ravel()]
+                rows = np.sort(rows[(rows >= self.lo) & (rows < self.hi)])
+                if rows.size:
+                    sets.append(rows.astype(PETSc.IntType))
+            self._regions = sets
+            self.info["region_rows"] = int(sum(r.size for r in sets))
+        pc.setUp()  # creates the split KSPs (not yet set up) and their PCs from the options
+        composite = pc.getFieldSplitSubKSP()[0].getPC()
+        composite.addCompositePCType("gamg")
+        composite.addCompositePCType("asm")
+        gamg, asm = composite.getCompositePC(0), composite.getCompositePC(1)
+        gamg.setFromOptions()
+        asm.setFromOptions()
+        # PCASM wants at least one subdomain per rank: a rank without region rows gets an empty one
+        subdomains = [PETSc.IS().createGeneral(r, comm=PETSc.COMM_SELF)
+                      for r in self._regions or [np.empty(0, PETSc.IntType)]]
+        asm.setASMLocalSubdomains(len(subdomains), subdomains)
 
     def _diagonal(self, values: np.ndarray, start: int, size: int):
         """A distributed diagonal AIJ matrix with the owned ``values`` from global row ``start``."""
