@@ -124,23 +124,26 @@ def test_mpiexec_solve_matches_the_serial_default_solver(serial, ranks, backend)
     assert sorted(p.name for p in tmp.iterdir() if p.name.startswith(f"results_{backend}_{ranks}")) == [out.name]
 
 
-def _first_newton_iterations(backend, bulk_scale, options=None):
+def _first_newton_iterations(backend, bulk_scale, options=None, beta=3.0e4, **solver):
     """Krylov iterations of ``backend`` on the first Newton system (zero displacement, α = 0.6) of the
     clamped body of tests/test_mixed_solver.py with every bulk modulus × ``bulk_scale``, to 10⁻⁸ of
     the condensed residual, and the solution's error against SciPy's direct solve; None for the
-    iterations when the solve fails. The penalty β is fixed (its default scales with the largest
-    modulus, i.e. with K, and would put a K-scaled term into the displacement block)."""
+    iterations when the solve fails. The penalty β is fixed at ``beta`` N/cm³ unless ``beta`` is
+    None: its default scales with the largest modulus, i.e. with K, and puts a K-scaled term into the
+    displacement block. ``solver``: further backend options (``region_solves``)."""
     import scipy.sparse.linalg as spla
     from test_mixed_solver import _system  # the same body as the serial mixed solver's K/μ test
 
     from pixmuscle.errors import SolverError
     from pixmuscle.mechanics.linsolve import make_solver
 
-    model, system = _system(held="patch", penalty={"at": "nodes", "beta": 3.0e4},
+    penalty = {} if beta is None else {"penalty": {"at": "nodes", "beta": beta}}
+    model, system = _system(held="patch", **penalty,
                             muscle={"K": 5000.0 * bulk_scale}, connective_tissue={"K": 50000.0 * bulk_scale})
     state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.5, 0.6)
     r = state.r.ravel()
-    solver = make_solver(backend, model.X, ijk=model.ijk, rtol=1e-10, maxiter=3000, petsc_options=options or {})
+    solver = make_solver(backend, model.X, ijk=model.ijk, rtol=1e-10, maxiter=3000, petsc_options=options or {},
+                         **solver)
     solver.prepare(system, state)
     try:
         x = solver.solve(r, rtol=1e-8)
@@ -154,8 +157,9 @@ def _first_newton_iterations(backend, bulk_scale, options=None):
 
 def test_mixed_field_split_iterations_do_not_grow_with_the_bulk_modulus():
     """PETSc FGMRES with the Schur field split (GAMG on K_d, the scaled pressure mass for the Schur
-    complement), refinement passes for the condensed residual included: ≤ 1.5× the iterations when
-    every bulk modulus is ×10 (measured 96 and 92), while the condensed GMRES + GAMG needs more than
+    complement; region solves on, the default), refinement passes for the condensed residual
+    included: ≤ 1.5× the iterations when every bulk modulus is ×10 (measured 82 and 75; 96 and 92
+    without the region solves), while the condensed GMRES + GAMG needs more than
     1.5× as many or fails (measured 680 at K × 1, breakdown at K × 10)."""
     if not petsc.available():
         pytest.skip(f"petsc4py not importable ({petsc.INSTALL_HINT})")
@@ -167,6 +171,23 @@ def test_mixed_field_split_iterations_do_not_grow_with_the_bulk_modulus():
     assert its[10.0] <= 1.5 * its[1.0]
     assert condensed[1.0] is None or condensed[1.0] > its[1.0]
     assert condensed[10.0] is None or (condensed[1.0] is not None and condensed[10.0] > 1.5 * condensed[1.0])
+
+
+def test_mixed_region_solves_keep_iterations_flat_in_the_bulk_modulus_with_the_default_penalty():
+    """With the default penalty number (β ∝ the largest modulus, so ∝ K) the penalty rows put a
+    K-scaled term into K_d. With the exact solves on the boundary-condition regions after GAMG (the
+    default) the iterations stay ≤ 1.5× from K × 1 to K × 10 (measured 96 and 102); GAMG alone
+    grows by more than 1.5× (measured 371 and 1,853)."""
+    if not petsc.available():
+        pytest.skip(f"petsc4py not importable ({petsc.INSTALL_HINT})")
+    its = {}
+    for regions in (True, False):
+        for scale in (1.0, 10.0):
+            its[regions, scale], err = _first_newton_iterations("petsc_mixed", scale, beta=None, region_solves=regions)
+            assert its[regions, scale] is not None and err <= 1e-6
+    assert its[True, 10.0] <= 1.5 * its[True, 1.0]
+    assert its[True, 1.0] < its[False, 1.0]
+    assert its[False, 10.0] > 1.5 * its[False, 1.0]
 
 
 def test_mpiexec_failure_on_one_rank_ends_all_ranks(serial, tmp_path):

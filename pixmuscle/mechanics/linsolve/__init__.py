@@ -47,10 +47,11 @@ dataclass (:mod:`.base`); the package imports its modules when it loads, the con
 ``petsc_mixed``
     The projected-energy tangent in the scaled mixed form of ``mixed_amg``, solved by PETSc on one
     or several MPI ranks (:mod:`.petsc_mixed`): FGMRES with a Schur field split (upper
-    block-triangular; GAMG on the displacement block without patch terms, Jacobi on the scaled
-    pressure mass for the Schur complement), refined until the condensed residual meets the target.
-    On the first Newton system of the 224-node clamped test body 96 and 92 iterations at K × 1 and
-    × 10 (condensed ``petsc``: 680, and no convergence at × 10; docs/petsc.md).
+    block-triangular; GAMG on the displacement block without patch terms followed by exact solves on
+    the boundary-condition regions, Jacobi on the scaled pressure mass for the Schur complement),
+    refined until the condensed residual meets the target. On the first Newton system of the
+    224-node clamped test body 96 and 102 iterations at K × 1 and × 10 with the default penalty
+    (GAMG alone: 371 and 1,853; condensed ``petsc``: no convergence; docs/petsc.md).
 ``auto`` (the default)
     ``direct`` up to ``direct_max_dofs`` unknowns (15k nodes with PARDISO, 4k with SuperLU),
     ``mixed_amg`` above (:mod:`.auto`).

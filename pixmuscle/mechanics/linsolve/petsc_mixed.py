@@ -27,17 +27,44 @@ The four blocks form a MatNest.
 The solver. PETSc's KSP FGMRES (the displacement block's preconditioner is a multigrid cycle, a
 preconditioner that need not be fixed) with ``PCFIELDSPLIT``: ``pc_fieldsplit_type schur``,
 ``pc_fieldsplit_schur_fact_type upper``, i.e. P = [M_A, w Gᵀ; 0, −Ŝ] as in ``mixed_amg``; the
-displacement split (options prefix ``fieldsplit_u_``) is one application of GAMG on K_d with the
-rigid-body modes as near-null space (``ksp_type preonly``); the Schur split (``fieldsplit_p_``) is
+displacement split (options prefix ``fieldsplit_u_``, ``ksp_type preonly``) is M_A, one GAMG cycle on
+K_d with the rigid-body modes as near-null space followed by exact solves of K_d on the node regions
+of the boundary conditions (``region_solves``, below); the Schur split (``fieldsplit_p_``) is
 Jacobi on the user matrix −Ŝ (``pc_fieldsplit_schur_precondition user``), the scaled pressure mass
 
     Ŝ = w² (D⁻¹ + c / (μ_p V_p)),    c = ``schur_scale``
 
-(``schur: mass`` of ``mixed_amg``). ``mixed_amg``'s default, the diagonal of G M_A Gᵀ probed with
-eight applications of M_A (:func:`.mixed.probed_schur_diagonal`), would need the field split's
-displacement preconditioner applied outside the KSP; it is not done here (serially it takes
-FGMRES from 79–131 to 32–41 iterations on the 5k leg). Nor are the exact solves on the boundary-
-condition regions that ``mixed_amg`` adds after each V-cycle.
+(``schur: mass`` of ``mixed_amg``).
+
+Region solves. The penalty rows of the boundary conditions, β Ψ(x_c)ᵀ w_c Ψ(x_c), couple every node
+in the support of a constraint point; with the default penalty number β scales with the largest
+modulus, i.e. with K, and GAMG's point smoother does not reduce these couplings (:mod:`.subdomains`).
+As in ``mixed_amg`` the GAMG cycle is followed by exact solves on the regions R_i of
+:func:`.subdomains.constraint_regions` (the supports of each condition's constraint points, plus
+the gradient supports of held single-node patches):
+
+    z ← GAMG r,    then for each region i in turn:  z ← z + R_i K_i⁻¹ R_iᵀ (r − K_d z)
+
+(a multiplicative Schwarz step, K_i = R_iᵀ K_d R_i, 3n_i × 3n_i, N/cm).
+
+In PETSc: ``fieldsplit_u_pc_type composite`` with ``pc_composite_type multiplicative`` over two
+sub-PCs, GAMG (options prefix ``fieldsplit_u_sub_0_``) and PCASM (``fieldsplit_u_sub_1_``: ``pc_asm_type
+basic``, ``pc_asm_overlap 0``, ``pc_asm_local_type multiplicative``, ``sub_pc_type lu``). On several
+ranks each rank takes, of each region, the part among its owned rows as one local subdomain, so a
+region cut by a slab boundary is solved as two blocks, one per rank, additively across ranks
+(multiplicatively among the regions of one rank); a rank without region rows has one empty
+subdomain. PCASM rather than a PCSHELL: the whole cycle stays in PETSc (no Python call per
+application), and every part of it is a PETSc option that ``petsc_options`` can change. The sub-PCs
+are added in code, not by ``pc_composite_pcs``, which PCFIELDSPLIT's two readings of the split's
+options (the split's KSP and the Schur complement's inner KSP are one object) would apply twice.
+A ``petsc_options`` entry for ``fieldsplit_u_pc_type`` (e.g. ``hypre``, ``lu``) replaces the whole
+composite; ``fieldsplit_u_sub_0_pc_type: hypre`` keeps the region solves after a hypre cycle;
+``region_solves: false`` gives GAMG alone, its options under ``fieldsplit_u_`` (:data:`DEFAULT_OPTIONS`).
+
+``mixed_amg``'s default Schur approximation, the diagonal of G M_A Gᵀ probed with eight
+applications of M_A (:func:`.mixed.probed_schur_diagonal`), would need the field split's
+displacement preconditioner applied outside the KSP; it is not done here (serially it takes FGMRES
+from 79–131 to 32–41 iterations on the 5k leg).
 
 Stopping. Newton asks for a relative residual of the condensed system. The condensed residual of a
 mixed iterate, r − K Δd = r₁ + Gᵀ (D/w) r₂, can exceed the mixed one by up to K/μ (the pressure rows
@@ -48,14 +75,13 @@ update is refined: a new mixed solve for the condensed residual so far, to a tar
 lag (condensed residual per mixed residual) the previous pass showed, at most eight passes.
 
 Measured (first Newton system, zero displacement, α = 0.6, of the 224-node clamped body of
-tests/test_mixed_solver.py, penalty β fixed at 3·10⁴ N/cm³, to 10⁻⁸ of the condensed residual,
-one rank): 96 iterations in three passes at the tissues' K/μ and 92 in two at K × 10; with an
-exact solve of K_d instead of GAMG (``fieldsplit_u_pc_type: lu``) 25 and 25 in one pass, so the
-Schur approximation is sound and the count is the GAMG cycle's. The condensed ``petsc`` backend
-needs 680 GMRES iterations at K × 1 and breaks down at K × 10. With the default penalty the
-penalty number β scales with the largest modulus, i.e. with K, and that puts a K-scaled term into
-K_d: the iterations then grow (371 → 1,853 with GAMG), as they do for ``mixed_amg`` without its
-region solves.
+tests/test_mixed_solver.py, to 10⁻⁸ of the condensed residual, one rank; iterations at the
+tissues' K/μ → at K × 10): with the default penalty (β ∝ K) 96 → 102 with the region solves,
+371 → 1,853 with GAMG alone (two ranks: 86 → 109 and 381 → 1,700); with β fixed at 3·10⁴ N/cm³
+82 → 75 with the region solves, 96 → 92 without; with an exact solve of K_d
+(``fieldsplit_u_pc_type: lu``, fixed β) 25 and 25 in one pass, so the Schur approximation is sound
+and the rest of the count is the displacement cycle's. The condensed ``petsc`` backend needs 680
+GMRES iterations at K × 1 (fixed β) and breaks down at K × 10.
 
 ``solve.solver.petsc_options`` go to the options database over this backend's defaults
 (:data:`DEFAULT_OPTIONS`, prefix ``pixmuscle_mixed_``), e.g. ``{fieldsplit_u_pc_type: hypre}``.
@@ -144,6 +170,7 @@ class PETScMixedSolver(PETScSolver):
         super().__init__(X, ijk, rtol=rtol, maxiter=maxiter, options=options)
         self.mixed_options = set_options(_PREFIX, REGION_OPTIONS if region_solves else DEFAULT_OPTIONS, options)
         self.schur_scale = float(schur_scale)
+        self.region_solves = bool(region_solves)
         self._mixed = None
         self._press = None
         self._gather = None
@@ -340,9 +367,10 @@ class PETScMixedSolver(PETScSolver):
         self.info["refinements"] += max(passes - 1, 0)
         self.info["solve_s"] = time.perf_counter() - t0
         if status != "converged":
+            amg = "fieldsplit_u_sub_0_pc_type" if self.region_solves else "fieldsplit_u_pc_type"
             raise SolverError(f"petsc_mixed: KSP fgmres with the Schur field split {status} after {total} iterations "
                               f"in {passes} passes (condensed relative residual {rn / max(bn, 1e-300):.1e}, target "
-                              f"{rtol:.1e}); try solver.petsc_options {{fieldsplit_u_pc_type: hypre}} or the "
+                              f"{rtol:.1e}); try solver.petsc_options {{{amg}: hypre}} or the "
                               "condensed backend petsc, or check the boundary conditions")
         return x.reshape(r.shape)
 
