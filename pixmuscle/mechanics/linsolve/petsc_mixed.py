@@ -271,13 +271,14 @@ class PETScMixedSolver(PETScSolver):
         self.info["nnz_local"] = int(Kd.nnz + 2 * G.nnz)
 
     def _set_region_subdomains(self, system, pc) -> None:
-        """With region solves (:data:`REGION_OPTIONS`: the displacement split's PC is a composite
-        whose sub-PCs the options do not list), add GAMG and PCASM to it and give PCASM its
-        subdomains: on this rank, for each region of :func:`.subdomains.constraint_regions`, the
+        """With ``region_solves`` (and, as in :data:`REGION_OPTIONS`, the displacement split's PC a
+        composite whose sub-PCs the options do not list), add GAMG and PCASM to it and give PCASM
+        its subdomains: on this rank, for each region of :func:`.subdomains.constraint_regions`, the
         region's dofs among the owned rows (PETSc displacement numbering); regions without an owned
         row are left out, and a rank without any has one empty subdomain."""
         opts = self.mixed_options
-        if str(opts.get("fieldsplit_u_pc_type")) != "composite" or "fieldsplit_u_pc_composite_pcs" in opts:
+        if (not self.region_solves or str(opts.get("fieldsplit_u_pc_type")) != "composite"
+                or "fieldsplit_u_pc_composite_pcs" in opts):
             return
         PETSc = self.PETSc
         if self._regions is None:
