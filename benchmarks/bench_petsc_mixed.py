@@ -2,15 +2,17 @@
 tests/test_mixed_solver.py at the tissues' bulk moduli and at K × 10, with the default penalty
 (β ∝ the largest modulus, so ∝ K) and with β fixed at 3·10⁴ N/cm³, with and without the region
 solves (docs/petsc.md, "Mixed displacement–pressure solve", Measured), and each solution's
-relative error against SciPy's direct solve. Seconds per row. A ``petsc_options`` entry for
+relative error against SciPy's direct solve. A ``petsc_options`` entry for
 ``fieldsplit_u_pc_type`` replaces the region-solve composite, so with one both rows of a penalty
 use that PC alone.
 
+Writes ``benchmarks/results/bench_petsc_mixed_<ranks>rank.md`` (the table and the command).
+
 Usage::
 
-    .venv/bin/python benchmarks/petsc_mixed_kmu.py                       # one rank
-    mpiexec -n 2 .venv/bin/python benchmarks/petsc_mixed_kmu.py          # two ranks (rank 0 prints)
-    .venv/bin/python benchmarks/petsc_mixed_kmu.py '{"fieldsplit_u_sub_0_pc_type": "hypre"}'   # petsc_options
+    .venv/bin/python benchmarks/bench_petsc_mixed.py                       # one rank
+    mpiexec -n 2 .venv/bin/python benchmarks/bench_petsc_mixed.py          # two ranks (rank 0 prints)
+    .venv/bin/python benchmarks/bench_petsc_mixed.py '{"fieldsplit_u_sub_0_pc_type": "hypre"}'   # petsc_options
 """
 
 from __future__ import annotations
@@ -58,15 +60,20 @@ def main() -> None:
 
     options = json.loads(sys.argv[1]) if len(sys.argv) > 1 else {}
     rank, size = PETSc.COMM_WORLD.getRank(), PETSc.COMM_WORLD.getSize()
-    if rank == 0:
-        print(f"petsc_mixed, {size} rank(s), petsc_options {options}")
-        print("| penalty | region solves | K × 1 | K × 10 |\n|---|---|---|---|")
+    command = " ".join(([f"mpiexec -n {size}"] if size > 1 else []) + [".venv/bin/python benchmarks/bench_petsc_mixed.py"]
+                       + [f"'{a}'" for a in sys.argv[1:]])
+    lines = [f"# petsc_mixed: first Newton system, {size} rank(s), petsc_options {options}", "", f"`{command}`", "",
+             "| penalty | region solves | K × 1 | K × 10 |", "|---|---|---|---|"]
     for beta in (None, 3.0e4):
         for regions in (True, False):
             row = [first_newton(scale, beta, options, regions) for scale in (1.0, 10.0)]
+            name = "default (β ∝ K)" if beta is None else f"β = {beta:.0e} N/cm³"
+            lines.append(f"| {name} | {'on' if regions else 'off'} | {row[0]} | {row[1]} |")
             if rank == 0:
-                name = "default (β ∝ K)" if beta is None else f"β = {beta:.0e} N/cm³"
-                print(f"| {name} | {'on' if regions else 'off'} | {row[0]} | {row[1]} |", flush=True)
+                print(lines[-1], flush=True)
+    if rank == 0 and not options:  # the default options' table is the record
+        out = ROOT / "benchmarks" / "results" / f"bench_petsc_mixed_{size}rank.md"
+        out.write_text("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":
