@@ -31,10 +31,10 @@ exact sparse solves of K_d on the node regions of the boundary conditions (``reg
 :mod:`.subdomains`): the penalty rows of the end faces and bone surfaces couple every node in the
 support of a constraint point, which a point smoother cannot reduce; a multiplicative Schwarz
 correction on those thin regions (end-face slabs, bone surfaces) takes them. The diagonal of
-G M_A⁻¹ Gᵀ in Ŝ is estimated by probing with 8 colours of the patch grid
-(``schur: probed``, the default; :func:`probed_schur_diagonal`, eight applications of M_A⁻¹ per
-Newton system); ``schur: mass`` takes the scaled pressure mass c/(μ_p V_p) instead
-(c = ``schur_scale``). On the leg with the default penalty number, FGMRES reaches 10⁻⁶ on the
+G M_A⁻¹ Gᵀ in Ŝ is estimated by probing with 27 colours of the patch grid (``schur: probed``, the
+default; :func:`probed_schur_diagonal`, ``probe_spacing`` = 3), once per build of the hierarchy at
+the state it is built from (27 applications of M_A⁻¹), and kept with it; ``schur: mass`` takes the
+scaled pressure mass c/(μ_p V_p) instead (c = ``schur_scale``). On the leg with the default penalty number, FGMRES reaches 10⁻⁶ on the
 first Newton system (α = 0.095) in 32, 37 and 41 iterations at K/μ ≈ 95, 951 and 9,506 (5,460
 nodes; 79, 116 and 131 with ``schur: mass``), in 48 at K/μ ≈ 951 on 21,169 nodes (205 with
 ``schur: mass``) and in 115 on 73,753 nodes (docs/performance.md, "What is not met yet").
@@ -125,11 +125,12 @@ class PatchDivergence:
         return (self.BT @ (t[None, :, None] * self.aT).reshape(-1, 3)).reshape(-1)
 
 
-def probed_schur_diagonal(G: PatchDivergence, M, box: np.ndarray) -> np.ndarray:
-    """Diagonal of G M Gᵀ (M ≈ K_d⁻¹) by probing: the patches are coloured by the parity of their
-    box index on the patch grid (8 colours), and for each colour c, s_p (G M Gᵀ (s ∘ 1_c))_p
-    estimates the diagonal entry of every patch p of that colour (its neighbours, which couple
-    most, have other colours); s is a fixed random ±1 per patch. Eight applications of M.
+def probed_schur_diagonal(G: PatchDivergence, M, box: np.ndarray, spacing: int = 2) -> np.ndarray:
+    """Diagonal of G M Gᵀ (M ≈ K_d⁻¹) by probing: the patches are coloured by their box index on the
+    patch grid modulo ``spacing`` (spacing³ colours: 8 for 2, 27 for 3), and for each colour c,
+    s_p (G M Gᵀ (s ∘ 1_c))_p estimates the diagonal entry of every patch p of that colour (the
+    patches within ``spacing`` − 1 boxes, which couple most, have other colours); s is a fixed
+    random ±1 per patch. spacing³ applications of M.
 
     The signs matter on large models. Without them each estimate adds the couplings of patch p to
     every other patch of its colour, and the coupling decays too slowly with distance for that sum
@@ -152,6 +153,8 @@ def probed_schur_diagonal(G: PatchDivergence, M, box: np.ndarray) -> np.ndarray:
         Preconditioner of the displacement block.
     box : (N_p, 3) int
         Box index of each patch on the patch grid.
+    spacing : int
+        Same-colour patches are ``spacing`` boxes apart along each axis (≥ 2).
 
     Returns
     -------
@@ -162,7 +165,7 @@ def probed_schur_diagonal(G: PatchDivergence, M, box: np.ndarray) -> np.ndarray:
     C. Bekas, E. Kokiopoulou, Y. Saad, "An estimator for the diagonal of a matrix", Appl. Numer.
     Math. 57(11–12), 1214–1229, 2007.
     """
-    colour = (box[:, 0] % 2) * 4 + (box[:, 1] % 2) * 2 + (box[:, 2] % 2)
+    colour = ((box % spacing) * np.array([spacing * spacing, spacing, 1])).sum(axis=1)
     sign = np.where(np.random.default_rng(0).random(box.shape[0]) < 0.5, -1.0, 1.0)
     out = np.zeros(box.shape[0])
     for c in np.unique(colour):
@@ -202,7 +205,8 @@ class MixedAMGOptions(CGAMGOptions):
 
     schur_scale: float = field(default=0.5, metadata={"gt": 0, "doc": "with schur: mass, c of the diagonal Schur complement diag(c/(μ_p V_p) + 1/(V_p K̄_p)): the typical eigenvalue of G K_d⁻¹ Gᵀ against the pressure mass"})
     restart: int = field(default=200, metadata={"range": (1, None), "doc": "FGMRES basis size (vectors kept before a restart; memory 2 × restart × the unknowns)"})
-    schur: str = field(default="probed", metadata={"choices": ("probed", "mass"), "doc": "diagonal Schur approximation: `probed`, the diagonal of G M Gᵀ (M the displacement block's preconditioner) by probing with 8 colours of the patch grid; `mass`, c/(μ_p V_p) with c = schur_scale"})
+    schur: str = field(default="probed", metadata={"choices": ("probed", "mass"), "doc": "diagonal Schur approximation: `probed`, the diagonal of G M Gᵀ (M the displacement block's preconditioner) by probing with probe_spacing³ colours of the patch grid at each preconditioner build; `mass`, c/(μ_p V_p) with c = schur_scale"})
+    probe_spacing: int = field(default=3, metadata={"range": (2, None), "doc": "with schur: probed, same-colour patches of the probe are this many patch boxes apart (spacing³ colours, as many V-cycles at each preconditioner build)"})
     region_solves: bool = field(default=True, metadata={"doc": "after each V-cycle, solve the displacement block exactly on the node regions of the boundary conditions (the supports of their constraint points: end slabs, bone surfaces), where the stiff penalty couplings live (linsolve/subdomains.py)"})
 
 
@@ -223,6 +227,9 @@ class MixedBlockSolver(KrylovAMGSolver):
     schur : {"probed", "mass"}
         Diagonal Schur approximation: ``probed`` (default, :func:`probed_schur_diagonal`) or the
         scaled pressure mass c/(μ_p V_p).
+    probe_spacing : int
+        With ``schur="probed"``: colour spacing of the probe on the patch grid (spacing³
+        applications of M_A at each build of the hierarchy).
     region_solves : bool
         Follow each V-cycle by exact solves of K_d on the regions of the boundary conditions
         (:mod:`.subdomains`).
@@ -236,18 +243,29 @@ class MixedBlockSolver(KrylovAMGSolver):
     name = "mixed_amg"
 
     def __init__(self, X, ijk, rtol: float = 1e-8, maxiter: int = 2000, schur_scale: float = 0.5, restart: int = 200,
-                 schur: str = "probed", region_solves: bool = True, **kw):
+                 schur: str = "probed", region_solves: bool = True, probe_spacing: int = 3, **kw):
         super().__init__(X, ijk, rtol=rtol, maxiter=maxiter, **kw)
         self.schur_scale = schur_scale
         self.restart = restart
         self.region_solves = region_solves
         self.schur = schur
+        self.probe_spacing = probe_spacing
         self._mu_node = None
         self._regions = None
+        self._press = None
+        self._probe = None
         self.info.update(region_nodes=0)
 
     def _stand_in(self):
         return self._system.preconditioner_matrix(self._state, self.reach, volumetric="held")
+
+    def _patch_divergence(self, state) -> tuple[PatchDivergence, np.ndarray]:
+        """G of the free patches at ``state`` and their indices."""
+        vol = self._system.volumetric
+        if self._press is None:
+            self._press = np.flatnonzero(~vol.held)
+        full = self._system.tangent_operator(state) if state is not self._state else self._A
+        return PatchDivergence(full.main.B, full.main.BT, state.vol.a, vol.Q[self._press]), self._press
 
     def prepare(self, system, state):
         super().prepare(system, state)
@@ -257,36 +275,41 @@ class MixedBlockSolver(KrylovAMGSolver):
             return
         if self._mu_node is None:
             self._mu_node = shear_moduli(system.A0)
-        press = np.flatnonzero(~vol.held)
         full = self._A
         Kd = MatrixFreeTangent(full.main, full.C, stab=full.stab, penalty=full.penalty,
                                volumetric=(vol.restricted(vol.held), state.vol))
-        Q = vol.Q[press]
-        G = PatchDivergence(full.main.B, full.main.BT, state.vol.a, Q)
+        G, press = self._patch_divergence(state)
         vp, kbar = vol.vp[press], vol.kbar[press]
-        mu = Q @ self._mu_node
+        mu = vol.Q[press] @ self._mu_node
         D = vp * kbar
         w = float(np.mean(mu * vp)) / float(np.min(system.model.spacing))
-        if self.schur == "probed":  # w² (D⁻¹ + diag(G M Gᵀ))
-            box = np.zeros((vol.n_patches, 3), np.int64)
-            box[vol.patch_of] = np.asarray(self.ijk) // np.asarray(vol.patch)
-            shat = w * w * (1.0 / D + probed_schur_diagonal(G, self._M, box[press]))
-        else:  # w² (D⁻¹ + c/(μ_p V_p)): the scaled pressure mass
-            shat = w * w * (1.0 / D + self.schur_scale / (mu * vp))
-        self._mixed = (_Mixed(Kd, G, D, w), _BlockTriangular(self._M, G, shat, w, Kd.shape[0]))
+        self._mixed = (_Mixed(Kd, G, D, w), _BlockTriangular(self._M, G, self._schur_diagonal(D, w, mu, vp), w,
+                                                             Kd.shape[0]))
+
+    def _schur_diagonal(self, D, w, mu, vp) -> np.ndarray:
+        """Ŝ = w² (D⁻¹ + diag(G M Gᵀ)) with the diagonal probed at the last build, or the scaled mass."""
+        if self.schur == "probed":
+            return w * w * (1.0 / D + self._probe)
+        return w * w * (1.0 / D + self.schur_scale / (mu * vp))
 
     def _build(self):
         super()._build()
         vol = self._system.volumetric  # prepare() sets the system before any build
-        if not self.region_solves or vol is None:
+        if vol is None:
             return
         t0 = time.perf_counter()
-        if self._regions is None:
-            self._regions = RegionSolves(self._system, constraint_regions(self._system, vol.held[vol.patch_of]),
-                                         self.ijk)
-            self.info["region_nodes"] = self._regions.n_nodes
-        self._regions.update(self._state)
-        self._M = CorrectedVCycle(self._M, self._regions)
+        if self.region_solves:
+            if self._regions is None:
+                self._regions = RegionSolves(self._system, constraint_regions(self._system, vol.held[vol.patch_of]),
+                                             self.ijk)
+                self.info["region_nodes"] = self._regions.n_nodes
+            self._regions.update(self._state)
+            self._M = CorrectedVCycle(self._M, self._regions)
+        if self.schur == "probed":  # diag(G M Gᵀ) of this hierarchy, at the state it is built from
+            G, press = self._patch_divergence(self._state)
+            box = np.zeros((vol.n_patches, 3), np.int64)
+            box[vol.patch_of] = np.asarray(self.ijk) // np.asarray(vol.patch)
+            self._probe = probed_schur_diagonal(G, self._M, box[press], self.probe_spacing)
         dt = time.perf_counter() - t0
         self._build_s += dt
         self.info["setup_s"] += dt
@@ -294,7 +317,10 @@ class MixedBlockSolver(KrylovAMGSolver):
     def _refresh(self):
         """After a rebuild of the AMG hierarchy the preconditioner must use the new one."""
         if self._mixed is not None:
-            self._mixed[1].MA = self._M
+            A, P = self._mixed
+            P.MA = self._M
+            if self.schur == "probed":
+                P.shat = A.c22 + A.w * A.w * self._probe
 
     def solve(self, r, rtol=None):
         if self._mixed is None:
