@@ -56,6 +56,11 @@ def first_newton(scale: float, beta: float | None, options: dict, region_solves:
 
 
 def main() -> None:
+    from pixmuscle.mechanics.linsolve import petsc
+
+    if not petsc.available():
+        print(f"bench_petsc_mixed: skipped, {petsc.INSTALL_HINT}")
+        return
     from petsc4py import PETSc
 
     options = json.loads(sys.argv[1]) if len(sys.argv) > 1 else {}

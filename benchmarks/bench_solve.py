@@ -308,6 +308,7 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
                          "bulk_scale": scale, "K_over_mu_muscle": round(BULK["muscle"] * scale / 5.26),
                          "region_solves": bool(getattr(solver, "region_solves", False) and solver.info.get("region_nodes")),
                          "schur": getattr(solver, "schur", None), "restart": getattr(solver, "restart", None),
+                         "probe_spacing": getattr(solver, "probe_spacing", None),
                          "krylov_iterations": its, "status": status, "solve_s": round(time.perf_counter() - t, 1),
                          "setup_s": round(setup, 1), "default": bool(default)})
             print(json.dumps(rows[-1]), flush=True)

@@ -13,7 +13,8 @@ the reference tolerance 10⁻⁸ (energy 10⁻¹⁴):
 - ``stress_rel``: the same for the Cauchy stress (largest |Δσ_ij| relative to the largest |σ_ij|).
 
 Each solve's fields are kept in ``--work`` (``case_<tol>.npz``), so a killed run is continued by
-running the same command again (finished tolerances are read back, not solved again).
+running the same command again (finished tolerances are read back, not solved again: delete that
+folder after changing the code).
 
 Writes ``benchmarks/results/bench_tolerance_<size>.json`` and ``.md``.
 

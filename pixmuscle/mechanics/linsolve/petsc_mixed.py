@@ -61,10 +61,10 @@ A ``petsc_options`` entry for ``fieldsplit_u_pc_type`` (e.g. ``hypre``, ``lu``) 
 composite; ``fieldsplit_u_sub_0_pc_type: hypre`` keeps the region solves after a hypre cycle;
 ``region_solves: false`` gives GAMG alone, its options under ``fieldsplit_u_`` (:data:`DEFAULT_OPTIONS`).
 
-``mixed_amg``'s default Schur approximation, the diagonal of G M_A Gᵀ probed with eight
-applications of M_A (:func:`.mixed.probed_schur_diagonal`), would need the field split's
-displacement preconditioner applied outside the KSP; it is not done here (serially it takes FGMRES
-from 79–131 to 32–41 iterations on the 5k leg).
+``mixed_amg``'s default Schur approximation, the diagonal of G M_A Gᵀ probed with 27
+applications of M_A at each preconditioner build (:func:`.mixed.probed_schur_diagonal`), would need
+the field split's displacement preconditioner applied outside the KSP; it is not done here
+(serially it takes FGMRES from 79–131 to 31–42 iterations on the 5k leg).
 
 Stopping. Newton asks for a relative residual of the condensed system. The condensed residual of a
 mixed iterate, r − K Δd = r₁ + Gᵀ (D/w) r₂, can exceed the mixed one by up to K/μ (the pressure rows
