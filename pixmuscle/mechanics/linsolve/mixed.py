@@ -260,13 +260,13 @@ class MixedBlockSolver(KrylovAMGSolver):
     def _stand_in(self):
         return self._system.preconditioner_matrix(self._state, self.reach, volumetric="held")
 
-    def _patch_divergence(self, state) -> tuple[PatchDivergence, np.ndarray]:
-        """G of the free patches at ``state`` and their indices."""
+    def _patch_divergence(self) -> tuple[PatchDivergence, np.ndarray]:
+        """G of the free patches at the prepared state, and their indices."""
         vol = self._system.volumetric
         if self._press is None:
             self._press = np.flatnonzero(~vol.held)
-        full = self._system.tangent_operator(state) if state is not self._state else self._A
-        return PatchDivergence(full.main.B, full.main.BT, state.vol.a, vol.Q[self._press]), self._press
+        main = self._A.main
+        return PatchDivergence(main.B, main.BT, self._state.vol.a, vol.Q[self._press]), self._press
 
     def prepare(self, system, state):
         super().prepare(system, state)
@@ -279,7 +279,7 @@ class MixedBlockSolver(KrylovAMGSolver):
         full = self._A
         Kd = MatrixFreeTangent(full.main, full.C, stab=full.stab, penalty=full.penalty,
                                volumetric=(vol.restricted(vol.held), state.vol))
-        G, press = self._patch_divergence(state)
+        G, press = self._patch_divergence()
         vp, kbar = vol.vp[press], vol.kbar[press]
         mu = vol.Q[press] @ self._mu_node
         D = vp * kbar
@@ -307,7 +307,7 @@ class MixedBlockSolver(KrylovAMGSolver):
             self._regions.update(self._state)
             self._M = CorrectedVCycle(self._M, self._regions)
         if self.schur == "probed":  # diag(G M Gᵀ) of this hierarchy, at the state it is built from
-            G, press = self._patch_divergence(self._state)
+            G, press = self._patch_divergence()
             box = np.zeros((vol.n_patches, 3), np.int64)
             box[vol.patch_of] = np.asarray(self.ijk) // np.asarray(vol.patch)
             self._probe = probed_schur_diagonal(G, self._M, box[press], self.probe_spacing)
