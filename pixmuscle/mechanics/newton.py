@@ -20,15 +20,18 @@ The force scale in the first test is the size of the internal (= penalty, at equ
 not the first residual of the step, which is dominated by the penalty forces of the new prescribed
 displacements and would make the test far too loose.
 
-Start of a load increment: the state is the last converged d with the new load factor and α,
-and the first update is computed with the tangent of the last converged state, which is
-positive definite at a stable equilibrium (a tangent predictor). The tangent at the start state
-itself is not: the new active fibre stress makes it indefinite along the soft lateral mode of a
-clamped muscle (geometric stiffness of the deviatoric active stress), its update overshoots
-that mode many times, and Newton then wandered for ~10 iterations at a relative residual ≈ 1
-(docs/performance.md, "Newton convergence"). Any later update that is no descent direction of
-Π (Δd·r ≤ 0), whose linear solve fails, or whose line search fails, is recomputed with the same
-converged tangent.
+Start of a load increment: the state is the last converged d with the new load factor and α.
+Every update, the first of the increment included, is computed with the tangent of the current
+state; one that is no descent direction of Π (Δd·r ≤ 0), whose linear solve fails, or whose
+line search fails, is computed again with the tangent of the last converged state, which is
+positive definite at a stable equilibrium. The tangent at the start state need not be: the new
+active fibre stress can make it indefinite along the soft lateral mode of a clamped muscle
+(geometric stiffness of the deviatoric active stress). With the halving line search its update
+then overshot that mode and Newton wandered for ~10 iterations, which is why the converged
+tangent used to start every increment; with the energy line search and this fallback the
+current tangent takes fewer iterations on the clamped block, and on the 21k leg the iterative
+solvers' preconditioner is then built for the activated state (docs/performance.md, "Newton
+convergence").
 
 Line search (:func:`line_search`): an energy line search — the step factor s is the root of
 Π′(s) = −Δd·r(d + sΔd), bracketed and interpolated by regula falsi, unless the full step already
@@ -189,7 +192,7 @@ def line_search(system, state, dd: np.ndarray, cfg: NewtonConfig):
     return None, s, why
 
 
-def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0, first_tangent=None) -> NewtonResult:
+def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0, fallback_tangent=None) -> NewtonResult:
     """Newton iterations from ``state`` at fixed load factor and activation.
 
     Parameters
@@ -202,9 +205,9 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0, first_
     linsolver : LinearSolver
     step : int
         Load-step number, for the log.
-    first_tangent : State, optional
-        Last converged state: its tangent gives the first update, and any update that is no
-        descent direction of Π (see the module docstring). ``None``: always the current tangent.
+    fallback_tangent : State, optional
+        Last converged state: its tangent recomputes an update that is no descent direction of Π,
+        or whose solve or line search fails (see the module docstring). ``None``: no fallback.
 
     Returns
     -------
@@ -236,9 +239,9 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0, first_
             break
         eta = forcing_term(rn, rn_prev, cfg.residual_tol * scale + system.atol, cfg.forcing_max)
         rn_prev = rn
-        # the first update of an increment, and any update that is no descent direction of Π, are
-        # computed with the (positive definite) tangent of the last converged state
-        tangents = [state] if first_tangent is None else [first_tangent] if it == 0 else [state, first_tangent]
+        # an update that is no descent direction of Π, or whose solve or line search fails, is computed
+        # again with the (positive definite) tangent of the last converged state
+        tangents = [state] if fallback_tangent is None else [state, fallback_tangent]
         trial = None
         for k, tangent_state in enumerate(tangents):
             try:
@@ -365,11 +368,11 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
     d = np.zeros((system.n_nodes, 3)) if d0 is None else np.asarray(d0, float).copy()
     records: list[StepRecord] = []
     t_done = 0.0
-    conv = None  # last converged state: its tangent starts every increment
+    conv = None  # last converged state: its tangent is the fallback of every increment
     # With a constant activation (displacement-driven loading) the tangent does not change with the load
     # factor, so the start of an increment is the linear extrapolation of the last converged increment
     # (the fastest start there); with a changing activation that extrapolation lands where the new active
-    # stress makes the tangent indefinite, and the converged state's tangent starts the increment instead.
+    # stress makes the tangent indefinite, and the increment starts at the converged d instead.
     passive_ramp = alpha_from == alpha_to
     last = None  # (increment of d, increment of t) of the last converged increment
     if resume:
@@ -396,7 +399,7 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
                     res = newton(system, state, cfg, linsolver, step=k)
                 else:
                     state = system.evaluate(d, t_try, alpha_of(t_try))
-                    res = newton(system, state, cfg, linsolver, step=k, first_tangent=conv)
+                    res = newton(system, state, cfg, linsolver, step=k, fallback_tangent=conv)
             except SolverError as exc:  # inverted already at the start of the increment
                 res = NewtonResult(None, False, 0, [], np.inf, str(exc))
             rows.extend(res.rows)
