@@ -12,7 +12,7 @@ the reference tolerance 10⁻⁸ (energy 10⁻¹⁴):
 - ``u_rel``: largest |Δu| over nodes and steps relative to the largest |u| of the reference;
 - ``stress_rel``: the same for the Cauchy stress (largest |Δσ_ij| relative to the largest |σ_ij|).
 
-Each solve's fields are kept in ``--work`` (``case_<tol>.npz``), so a killed run is continued by
+Each solve's fields are kept in ``--work`` (``case_<size>_<tol>.npz``), so a killed run is continued by
 running the same command again (finished tolerances are read back, not solved again: delete that
 folder after changing the code).
 
