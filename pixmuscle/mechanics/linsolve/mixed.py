@@ -176,6 +176,26 @@ def probed_schur_diagonal(G: PatchDivergence, M, box: np.ndarray, spacing: int =
     return np.maximum(np.abs(out), tiny)
 
 
+def pressure_scale(mu: np.ndarray, vp: np.ndarray, spacing) -> float:
+    """w = mean_p(μ_p V_p) / s, N: the shear scale of the scaled mixed form (module docstring).
+
+    Parameters
+    ----------
+    mu, vp : (N_p,) float
+        Shear modulus (N/cm²) and volume (cm³) of every pressure patch.
+    spacing : (3,) float
+        Voxel edges, cm; s is the smallest.
+    """
+    return float(np.mean(mu * vp)) / float(np.min(spacing))
+
+
+def refinement_target(rtol: float, bn: float, rn: float, lag: float, floor: float) -> float:
+    """Relative target of a refinement pass: the condensed target ``rtol`` · ``bn`` asked of the
+    condensed residual ``rn`` left so far, divided by the ``lag`` (condensed residual per mixed
+    residual) the last pass showed, halved for margin; within [``floor``, 0.5]."""
+    return min(0.5, max(0.5 * rtol * bn / (rn * lag), floor))
+
+
 class _Mixed:
     """The scaled mixed operator [K_d, w Gᵀ; w G, −w² D⁻¹] on z = [Δd; q̃]."""
 
@@ -283,7 +303,7 @@ class MixedBlockSolver(KrylovAMGSolver):
         vp, kbar = vol.vp[press], vol.kbar[press]
         mu = vol.Q[press] @ self._mu_node
         D = vp * kbar
-        w = float(np.mean(mu * vp)) / float(np.min(system.model.spacing))
+        w = pressure_scale(mu, vp, system.model.spacing)
         self._mixed = (_Mixed(Kd, G, D, w), _BlockTriangular(self._M, G, self._schur_diagonal(D, w, mu, vp), w,
                                                              Kd.shape[0]))
 
@@ -357,7 +377,7 @@ class MixedBlockSolver(KrylovAMGSolver):
                 return target
 
             # a refinement's target: the lag the last pass showed foretells this one's
-            target = rtol if not attempt else min(0.5, max(0.5 * rtol * bn / (rn * lag), floor))
+            target = rtol if not attempt else refinement_target(rtol, bn, rn, lag, floor)
             verdict["target"] = target
             z, its, status = fgmres(A, rhs, P, target, self.maxiter - total, restart=self.restart, check=check)
             total += its

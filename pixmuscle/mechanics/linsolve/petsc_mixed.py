@@ -99,7 +99,7 @@ import numpy as np
 from ...errors import SolverError
 from ..volumetric import shear_moduli
 from .base import BACKENDS
-from .mixed import PatchDivergence
+from .mixed import PatchDivergence, pressure_scale, refinement_target
 from .petsc import DEFAULT_OPTIONS as CONDENSED_OPTIONS
 from .petsc import PETScOptions, PETScSolver, set_options
 from .subdomains import constraint_regions
@@ -227,9 +227,8 @@ class PETScMixedSolver(PETScSolver):
         vp, kbar = vol.vp[mine], vol.kbar[mine]
         mu = Q @ self._mu_node
         D = vp * kbar
-        # w from all pressures (every rank the same number): mean_p(μ_p V_p) / s
-        mu_all = vol.Q[patches] @ self._mu_node
-        w = float(np.mean(mu_all * vol.vp[patches])) / float(np.min(system.model.spacing))
+        # w from all pressures, so that every rank has the same number
+        w = pressure_scale(vol.Q[patches] @ self._mu_node, vol.vp[patches], system.model.spacing)
         G = (w * PatchDivergence(full.main.B, full.main.BT, state.vol.a, Q).sparse()).tocsr()
         G.indices = self.pos[G.indices]
         G.has_sorted_indices = False
@@ -334,7 +333,7 @@ class PETScMixedSolver(PETScSolver):
                 break
             # the first pass asks the mixed residual for the condensed target; a refinement asks for
             # what the lag of the last pass says the condensed target needs
-            target = rtol if passes == 0 else min(0.5, max(0.5 * rtol * bn / (rn * lag), _FLOOR))
+            target = rtol if passes == 0 else refinement_target(rtol, bn, rn, lag, _FLOOR)
             barr = b.getArray()
             barr[:] = 0.0
             barr[iu] = res[own]
