@@ -117,6 +117,30 @@ def test_mixed_solve_gives_the_condensed_newton_update(bulk_scale):
     assert 0 < solver.info["iterations"] < 100
 
 
+def test_mixed_solve_rebuilds_a_stale_preconditioner_within_the_solve():
+    """A kept hierarchy whose iterations on a solve exceed its post-build rate by ``rebuild_cost`` is
+    rebuilt there (AMG and probed Schur diagonal, from this system's tangent) and the solve started
+    again: a first solve at α = 0.6 sets the rate, a second system, at a deformed state, then gets
+    the budget, and its answer is the direct one."""
+    model, system = _system()
+    s0 = system.evaluate(np.zeros((model.n_nodes, 3)), 0.5, 0.6)
+    solver = make_solver("mixed_amg", model.X, ijk=model.ijk, rtol=1e-10, rebuild_cost=2)
+    solver.prepare(system, s0)
+    d = solver.solve(s0.r.ravel(), rtol=1e-8).reshape(-1, 3)
+    rate = solver._rate0
+    assert solver.info["preconditioner_builds"] == 1 and rate > 1.0
+    s1 = system.evaluate(d, 0.5, 0.6)
+    solver.prepare(system, s1)
+    solver._rate0 = 0.1  # as if the kept hierarchy had been far better right after its build
+    r = s1.r.ravel()
+    x = solver.solve(r, rtol=1e-8)
+    assert solver.info["preconditioner_builds"] == 2
+    budget = int(np.ceil(0.1 * 8 + 2))
+    assert solver.info["iterations"] > budget and solver._rate0 == pytest.approx((solver.info["iterations"] - budget) / 8)
+    K = system.stiffness(s1).tocsc()
+    assert np.linalg.norm(K @ x - r) <= 1e-8 * np.linalg.norm(r)
+
+
 def _mixed_iterations(bulk_scale, held, region_solves=True):
     """FGMRES iterations of the mixed solve to 10⁻⁸ on the body clamped at its end nodes (nodes held
     by the penalty at the node), and the solution's error against the direct solve."""

@@ -343,28 +343,39 @@ def test_every_backend_gives_the_direct_solution():
 
 
 def test_cg_amg_rebuilds_when_stale_iterations_cost_a_build():
-    """Ski-rental rule: iterations beyond the post-build rate are charged in seconds; the hierarchy
-    is rebuilt once they exceed the build time, and not before."""
+    """Ski-rental rule in iterations: iterations beyond the post-build rate are charged; the
+    hierarchy is rebuilt once they exceed ``rebuild_cost``, and not before; a single solve that
+    exceeds it is stopped, the hierarchy rebuilt and the solve finished with the new one."""
     from pixmuscle.mechanics.linsolve import KrylovAMGSolver
 
     model = _mixed_leg_like_model()
     system = _system(model)
     state = system.evaluate(np.zeros((model.n_nodes, 3)), 1.0, 0.5)
-    s = KrylovAMGSolver(model.X, model.ijk)
-    s.prepare(system, state)
     r = state.r.ravel()
+    K = system.tangent_operator(state)
+    s = KrylovAMGSolver(model.X, model.ijk, rebuild_cost=10**6)
+    s.prepare(system, state)
     s.solve(r, rtol=1e-8)
-    assert s.info["preconditioner_builds"] == 1 and s._rate0 >= 1.0
+    its = s.info["iterations"]
+    assert s.info["preconditioner_builds"] == 1 and s._rate0 == pytest.approx(its / 8)
     s._rate0 = 0.1  # pretend the hierarchy was much better right after its build: every solve now costs extra
-    s._build_s = 1e9  # ... but a build would cost far more than that
     s.solve(r, rtol=1e-8)
     s.prepare(system, state)
-    assert s.info["preconditioner_builds"] == 1
-    s._rate0, s._build_s = 0.1, 0.0  # a free build: the first extra iteration pays for it
+    assert s.info["preconditioner_builds"] == 1 and s._excess == pytest.approx(its - 0.8)  # a build costs far more
+    s.rebuild_cost = its - 1  # the next solve's extra iterations exceed a build: rebuilt at the next prepare
+    s._excess = 0.0
     x = s.solve(r, rtol=1e-8)
+    assert s.info["preconditioner_builds"] == 1 and s._stale
     s.prepare(system, state)
-    assert s.info["preconditioner_builds"] == 2
-    assert np.linalg.norm(system.tangent_operator(state) @ x - r) <= 1e-8 * np.linalg.norm(r) * 1.01
+    assert s.info["preconditioner_builds"] == 2 and not s._stale
+    assert np.linalg.norm(K @ x - r) <= 1e-8 * np.linalg.norm(r) * 1.01
+    # within a solve: 0.8 predicted + 3 of budget, then a rebuild and a full solve with the new hierarchy
+    s.solve(r, rtol=1e-8)  # fresh: sets the rate
+    s._rate0, s.rebuild_cost = 0.1, 3
+    s.prepare(system, state)  # keeps the hierarchy
+    x = s.solve(r, rtol=1e-8)
+    assert s.info["preconditioner_builds"] == 3 and s.info["iterations"] == 4 + its
+    assert np.linalg.norm(K @ x - r) <= 1e-8 * np.linalg.norm(r) * 1.01
 
 
 def test_cg_amg_solves_an_indefinite_tangent_by_fgmres():

@@ -18,7 +18,12 @@ written. Layout:
     the last converged load increment (the predictor of the next one extrapolates it); absent
     before the first increment;
 ``/newton/<column>``
-    Newton log rows of the converged steps (columns of :data:`pixmuscle.mechanics.results.NEWTON_COLUMNS`).
+    Newton log rows of the converged steps (columns of :data:`pixmuscle.mechanics.results.NEWTON_COLUMNS`);
+``/solver/d`` (N, 3) cm, ``t``, ``alpha``, attribute ``counters`` (JSON)
+    the linear solver's memory after the last step (:class:`~pixmuscle.mechanics.linsolve.SolverMemory`):
+    the state whose tangent its preconditioner or factors were built from, and its rebuild rule's
+    counters; a resumed solve rebuilds them there and decides as the uninterrupted one. Absent for
+    a backend that keeps nothing.
 
 Root attribute ``key``: :func:`checkpoint_key` of the model file, the ``solve`` section and the
 package version. A checkpoint whose key differs belongs to another model or configuration and is
@@ -37,6 +42,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import InputError
+from ..mechanics.linsolve.base import SolverMemory
 from ..mechanics.newton import NewtonRow, SavedState, StepRecord
 from ..mechanics.results import NEWTON_COLUMNS
 from ..store import config_hash, open_stage, sha256_file, write_stage
@@ -105,6 +111,13 @@ def save_checkpoint(path: str | Path, records: Sequence[StepRecord], *, key: str
             g = f.create_group("increment")
             g.create_dataset("d", data=np.asarray(inc[0], float))
             g.create_dataset("dt", data=float(inc[1]))
+        mem = records[-1].solver if records else None
+        if mem is not None:
+            g = f.create_group("solver")
+            g.create_dataset("d", data=np.asarray(mem.d, float))
+            g.create_dataset("t", data=float(mem.t))
+            g.create_dataset("alpha", data=float(mem.alpha))
+            g.attrs["counters"] = json.dumps({k: float(v) for k, v in mem.counters.items()})
         rows = [row for r in records for row in r.rows]
         ng = f.create_group("newton")
         for c in NEWTON_COLUMNS:
@@ -133,6 +146,11 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
             d = np.asarray(st["d"][()], float)
             newton = {c: np.asarray(f["newton"][c][()]) for c in NEWTON_COLUMNS}
             inc = (np.asarray(f["increment/d"][()], float), float(f["increment/dt"][()])) if "increment" in f else None
+            mem = None
+            if "solver" in f:
+                g = f["solver"]
+                mem = SolverMemory(d=np.asarray(g["d"][()], float), t=float(g["t"][()]), alpha=float(g["alpha"][()]),
+                                   counters=json.loads(g.attrs["counters"]))
             key = f.attrs["key"]
             n_steps = int(f.attrs["n_steps_planned"])
         except KeyError as exc:
@@ -151,5 +169,5 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         state = SavedState(d=d[i], t=float(cols["state_t"][i]), alpha=float(cols["state_alpha"][i]))
         records.append(StepRecord(step=i, t=float(cols["t"][i]), alpha=float(cols["alpha"][i]), state=state,
                                   iterations=int(cols["iterations"][i]), cutbacks=int(cols["cutbacks"][i]), rows=rows,
-                                  increment=inc if i == n - 1 else None))
+                                  increment=inc if i == n - 1 else None, solver=mem if i == n - 1 else None))
     return Checkpoint(key=key, n_steps=n_steps, records=records)

@@ -318,6 +318,9 @@ class StepRecord:
     #: (Δd (N, 3) cm, Δt) of the last converged increment up to this step (None: none yet); the
     #: predictor of the next increment extrapolates it, so a resumed solve needs it
     increment: tuple | None = None
+    #: the linear solver's :class:`~.linsolve.base.SolverMemory` after this step (None: nothing kept);
+    #: a resumed solve rebuilds the solver from it, so that it decides as the uninterrupted one
+    solver: Any = None
 
 
 @dataclasses.dataclass

@@ -587,7 +587,8 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
         steps[-1]["max_principal"] = max_principal(steps[-1]["cauchy"])
         steps[-1]["gaps"] = system.constraints.gaps(st.d, rec.t, steps[-1]["u"])
         last_rel = rec.rows[-1].relative_residual if rec.rows else 0.0
-        done.append(dataclasses.replace(rec, state=_newton.SavedState(st.d, st.t, st.alpha)))  # no F, P, A kept
+        done.append(dataclasses.replace(rec, state=_newton.SavedState(st.d, st.t, st.alpha),  # no F, P, A kept
+                                        solver=rec.solver if replay else linsolver.memory()))
         if on_checkpoint is not None and not replay:
             on_checkpoint(done)
         _LOG.log(logging.DEBUG if replay else logging.INFO, "load step %d of %d: α = %.4g, load factor %.4g, %d Newton iterations, %d cutbacks, relative residual %.2e",
@@ -608,6 +609,8 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
             on_step(dataclasses.replace(rec, state=system.evaluate(np.asarray(st.d, float), st.t, st.alpha)), replay=True)
         if done:
             info["resumed_after_step"] = len(done) - 1
+            if done[-1].solver is not None:  # the preconditioner or factors the interrupted solve held
+                linsolver.recall(system, done[-1].solver)
         _newton.load_steps(system, cfg.steps, *ramp, cfg.newton, _Timed(), on_step=on_step, resume=done or None)
     except SolverError as exc:
         status = f"failed: {exc}"

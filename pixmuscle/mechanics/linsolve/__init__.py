@@ -61,7 +61,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import BACKENDS, LinearSolver, pcg, rigid_body_modes
+from .base import BACKENDS, LinearSolver, SolverMemory, pcg, rigid_body_modes
 
 BACKENDS.discover()
 
@@ -74,7 +74,7 @@ from .mixed import MixedAMGOptions, MixedBlockSolver  # noqa: E402
 from .petsc import PETScOptions, PETScSolver  # noqa: E402
 from .petsc_mixed import PETScMixedOptions, PETScMixedSolver  # noqa: E402
 
-__all__ = ["LinearSolver", "DirectSolver", "KrylovAMGSolver", "BACKENDS", "make_solver", "pcg", "rigid_body_modes",
+__all__ = ["LinearSolver", "SolverMemory", "DirectSolver", "KrylovAMGSolver", "BACKENDS", "make_solver", "pcg", "rigid_body_modes",
            "voxel_aggregates", "nested_dissection", "AUTO_DIRECT_MAX_DOFS", "PETScSolver", "MixedBlockSolver", "fgmres",
            "AutoOptions", "CGAMGOptions", "DirectOptions", "MixedAMGOptions", "PETScOptions", "ReusePolicy",
            "PETScMixedOptions", "PETScMixedSolver",

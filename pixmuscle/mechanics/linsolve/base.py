@@ -89,6 +89,37 @@ class LinearSolver:
         name under ``linear_solver`` and whatever counts the backend keeps."""
         return {"linear_solver": self.name}
 
+    def memory(self) -> SolverMemory | None:
+        """What a resumed solve needs to take this solver's next decisions as the uninterrupted one
+        would (a checkpoint keeps it with the last converged step); None: nothing kept, a resumed
+        solve starts the backend afresh."""
+        return None
+
+    def recall(self, system, memory: SolverMemory) -> None:
+        """Rebuild what :meth:`memory` described: the preconditioner or factors of the tangent at
+        ``memory``'s state, and the counters of the rules that decide when to rebuild them."""
+
+
+@dataclasses.dataclass
+class SolverMemory:
+    """A backend's kept preconditioner or factors, as a state to rebuild them from, and its counters.
+
+    Attributes
+    ----------
+    d : (N, 3) float
+        RK coefficients of the state whose tangent they were built from, cm.
+    t, alpha : float
+        Load factor and activation at which that state was evaluated.
+    counters : dict of str to float
+        The backend's decision counters (e.g. the reference rate and the extra iterations of the
+        AMG rebuild rule); NaN for "not set".
+    """
+
+    d: np.ndarray
+    t: float
+    alpha: float
+    counters: dict
+
 
 def rigid_body_modes(X: np.ndarray) -> np.ndarray:
     """Six rigid-body modes (3 translations, 3 rotations about the centroid) as (3N, 6) columns."""

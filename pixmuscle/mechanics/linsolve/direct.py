@@ -11,7 +11,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 from ...errors import SolverError
-from .base import BACKENDS, LinearSolver, Tolerance, pcg
+from .base import BACKENDS, LinearSolver, SolverMemory, Tolerance, pcg
 from .factorization import ENGINES, PARDISO_MISSING, engine_name
 
 
@@ -20,11 +20,14 @@ class DirectOptions(Tolerance):
     """Options of ``solve.solver: {backend: direct, …}``."""
 
     engine: Literal["auto", "pardiso", "superlu"] = field(default="auto", metadata={"doc": "MKL PARDISO (optional package mkl, pip install 'pixmuscle[fast]') or SciPy's SuperLU; auto takes PARDISO when installed"})
-    reuse_factorization: bool = field(default=True, metadata={"doc": "keep the factors of an earlier tangent and use them to precondition CG on the exact (matrix-free) tangent; refactorise when that gets slow (> 20 CG iterations, or more than a quarter of the time of assembly + factorisation)"})
+    reuse_factorization: bool = field(default=True, metadata={"doc": "keep the factors of an earlier tangent and use them to precondition CG on the exact (matrix-free) tangent; refactorise when that gets slow (a solve needs more than 20 CG iterations; counted in iterations, not seconds, so that a run repeats itself exactly)"})
 
     def __post_init__(self):
         if self.engine == "pardiso" and engine_name("auto") != "pardiso":
             raise ValueError(PARDISO_MISSING)
+
+
+_FACTORS = ("none", "current", "reused", "stale")  # the states of ReusePolicy.factors
 
 
 class ReusePolicy:
@@ -47,7 +50,6 @@ class ReusePolicy:
         self.reuse = reuse
         self.krylov_maxiter = krylov_maxiter
         self.factors = "none"
-        self.cost_s = 0.0  # seconds of the last assembly + factorisation
 
     def keep(self) -> bool:
         """At a new Newton state: keep the factors (and solve matrix-free) instead of assembling?"""
@@ -57,10 +59,9 @@ class ReusePolicy:
         """Given an assembled tangent: factorise it?"""
         return self.factors in ("none", "stale") or not self.reuse
 
-    def factorized(self, cost_s: float) -> None:
-        """The current tangent was factorised in ``cost_s`` seconds (assembly included)."""
+    def factorized(self) -> None:
+        """The current tangent was factorised."""
         self.factors = "current"
-        self.cost_s = cost_s
 
     def kept(self) -> None:
         """The kept factors serve the current tangent as a preconditioner."""
@@ -71,9 +72,13 @@ class ReusePolicy:
         """True when the factors are of the current tangent."""
         return self.factors == "current"
 
-    def solved(self, iterations: int, seconds: float) -> None:
-        """A Krylov solve with the kept factors converged: are they still worth keeping?"""
-        if iterations > self.krylov_maxiter // 2 or seconds > 0.25 * self.cost_s:
+    def solved(self, iterations: int) -> None:
+        """A Krylov solve with the kept factors converged: are they still worth keeping?
+
+        By the iteration count alone (a rule in seconds would make two runs of one config take
+        different decisions). At 5k–20k nodes a refactorisation costs about as much as 20–25
+        iterations with kept factors, so the two rules nearly agree."""
+        if iterations > self.krylov_maxiter // 2:
             self.factors = "stale"  # refactorise at the next Newton iteration
 
 
@@ -94,8 +99,8 @@ class DirectSolver(LinearSolver):
     (:meth:`~pixmuscle.mechanics.solve.MechanicalSystem.tangent_operator`, no assembly)
     preconditioned with K₀⁻¹ (GMRES if K₀ was indefinite), to the tolerance the caller asks
     (inexact Newton). The tangent is refactorised at the next Newton iteration when a solve
-    needed more than ``krylov_maxiter``/2 iterations or more than a quarter of the time of the
-    last assembly + factorisation, and at once when it fails to converge in ``krylov_maxiter``.
+    needed more than ``krylov_maxiter``/2 iterations, and at once when it fails to converge in
+    ``krylov_maxiter``.
     """
 
     name = "direct"
@@ -113,7 +118,8 @@ class DirectSolver(LinearSolver):
         self._K = None
         self._op = None
         self._system = self._state = None
-        self._assembly_s = 0.0
+        self._K_at = None  # (d, t, α) of the state whose tangent self._K is (None: not known)
+        self._factored_at = None  # the same for the kept factors
         self.info.update(factorizations=0, krylov_iterations=0, engine=name, analysis_s=0.0)
 
     @classmethod
@@ -124,8 +130,9 @@ class DirectSolver(LinearSolver):
     def _refactor(self):
         t0 = time.perf_counter()
         self.engine.factorize(self._K)
+        self._factored_at = self._K_at
         self.info.update(self.engine.info)
-        self.policy.factorized(self._assembly_s + time.perf_counter() - t0)
+        self.policy.factorized()
         self.info["factorizations"] += 1
         self.info["setup_s"] += time.perf_counter() - t0
 
@@ -176,15 +183,15 @@ class DirectSolver(LinearSolver):
             self.policy.kept()
             return
         self._system = self._state = None
-        t0 = time.perf_counter()
-        K = system.stiffness(state)
-        self.factorize(K, assembly_s=time.perf_counter() - t0)
+        self._take(system.stiffness(state), state)
 
-    def factorize(self, K, assembly_s: float = 0.0):
-        """Take the assembled tangent ``K`` (assembled in ``assembly_s`` seconds); factorise it unless
-        ``reuse`` keeps earlier factors."""
-        self._assembly_s = assembly_s
+    def factorize(self, K):
+        """Take the assembled tangent ``K``; factorise it unless ``reuse`` keeps earlier factors."""
+        self._take(K, None)
+
+    def _take(self, K, state):
         self._K = K
+        self._K_at = None if state is None else (np.array(state.d, float), float(state.t), float(state.alpha))
         self._op = K
         self.info["setup_s"] = 0.0
         if self.policy.must_factorize():
@@ -204,21 +211,38 @@ class DirectSolver(LinearSolver):
             self.info["krylov_iterations"] += its
             if not ok:
                 x = None
-                self._assembly_s = 0.0
                 if self._K is None:  # matrix-free reuse: assemble the current tangent now
                     t1 = time.perf_counter()
                     self._K = self._system.stiffness(self._state)
-                    self._assembly_s = time.perf_counter() - t1
-                    self.info["setup_s"] += self._assembly_s
+                    st = self._state
+                    self._K_at = (np.array(st.d, float), float(st.t), float(st.alpha))
+                    self.info["setup_s"] += time.perf_counter() - t1
                 self._refactor()
             else:
-                self.policy.solved(its, time.perf_counter() - t0)
+                self.policy.solved(its)
         if x is None:
             x = self._accurate_solve(r)
         self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
         if not np.all(np.isfinite(x)):
             raise SolverError("direct solver returned non-finite values (singular stiffness)")
         return x
+
+    def memory(self) -> SolverMemory | None:
+        """The state whose tangent the kept factors are of, and what the reuse rule holds of them
+        (None when they came from :meth:`factorize` without a state)."""
+        if self._factored_at is None:
+            return None
+        return SolverMemory(*self._factored_at, counters={"factors": float(_FACTORS.index(self.policy.factors))})
+
+    def recall(self, system, memory: SolverMemory) -> None:
+        """Factorise the tangent at ``memory``'s state and restore the reuse rule's verdict on it."""
+        state = system.evaluate(np.asarray(memory.d, float), memory.t, memory.alpha)
+        self._system = self._state = None
+        self._K, self._op = system.stiffness(state), None
+        self._K_at = (np.asarray(memory.d, float), float(memory.t), float(memory.alpha))
+        self._refactor()
+        self._op = self._K
+        self.policy.factors = _FACTORS[int(memory.counters["factors"])]
 
     def statistics(self) -> dict:
         """Name, engine (``linear_engine``), ``factorizations``, ``krylov_iterations`` (with kept
