@@ -299,10 +299,11 @@ def test_voxel_aggregates_group_boxes():
 
 
 def test_every_backend_gives_the_direct_solution():
-    """Target 7 of the scale issue: every backend reproduces the tight-tolerance SuperLU solution of
-    an activation sweep, forces to 1e-6 relative and displacement fields to 1e-4 of the largest
-    |u| at every load step: cg_amg, PARDISO (when MKL is installed), PARDISO and SuperLU with
-    factor reuse (CG on the matrix-free tangent) and any other registered backend."""
+    """Every backend at Newton 10⁻⁸ reproduces the SuperLU solution of an activation sweep at 10⁻¹⁰,
+    forces to 1e-6 relative and displacement fields to 1e-4 of the largest |u| at every
+    load step: cg_amg, PARDISO (when MKL is installed), PARDISO and SuperLU with factor reuse (CG
+    on the matrix-free tangent) and any other registered backend; the shipped defaults (Newton
+    10⁻⁴) give the forces to 1e-5."""
     from pixmuscle.mechanics.linsolve import BACKENDS
 
     model = _mixed_leg_like_model()
@@ -321,10 +322,13 @@ def test_every_backend_gives_the_direct_solution():
             continue  # petsc4py not installed here (tests/test_petsc.py says so)
         variants[name] = {"backend": name}
     out = {}
+    # the backends at a tight Newton tolerance (what differs is the linear solver); "defaults" is the
+    # shipped configuration, Newton at 1e-4: within 1e-5 of the tight forces
+    variants["defaults"] = {}
     for name, solver in variants.items():
-        newton = tight if name == "superlu" else {}
-        res = solve(model, _cfg(steps=3, activation={"from": 0.0, "to": 0.95}, boundary_conditions=bcs, solver=solver,
-                                newton=newton))
+        newton = tight if name == "superlu" else {"residual_tol": 1e-8, "energy_tol": 1e-14}
+        keys = {"solver": solver, "newton": newton} if solver else {}
+        res = solve(model, _cfg(steps=3, activation={"from": 0.0, "to": 0.95}, boundary_conditions=bcs, **keys))
         out[name] = res
         assert res.status == "complete"
     ref = out["superlu"]
@@ -333,7 +337,8 @@ def test_every_backend_gives_the_direct_solution():
     umax = np.abs(u_d).max()
     assert abs(f_d[-1]) > 1.0 and umax > 1e-3
     for name in variants:
-        assert np.allclose(out[name].force("z_max"), f_d, rtol=1e-6, atol=1e-9 * abs(f_d).max()), name
+        rtol = 1e-5 if name == "defaults" else 1e-6
+        assert np.allclose(out[name].force("z_max"), f_d, rtol=rtol, atol=1e-9 * abs(f_d).max()), name
         assert np.abs(np.asarray(out[name].u) - u_d).max() <= 1e-4 * umax, name
     if "pardiso_reuse" in out:
         info = out["pardiso_reuse"].info

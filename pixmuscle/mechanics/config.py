@@ -156,8 +156,8 @@ class NewtonConfig:
     """Newton–Raphson iteration per load step."""
 
     max_iterations: int = field(default=25, metadata={"range": (1, None)})
-    residual_tol: float = field(default=1.0e-8, metadata={"gt": 0, "doc": "‖r‖ ≤ tol · max(‖f_int‖, ‖f_penalty‖)"})
-    energy_tol: float = field(default=1.0e-14, metadata={"gt": 0, "doc": "|Δd·r| ≤ tol · (largest |Δd·r| of the step)"})
+    residual_tol: float = field(default=1.0e-4, metadata={"gt": 0, "doc": "‖r‖ ≤ tol · max(‖f_int‖, ‖f_penalty‖)"})
+    energy_tol: float = field(default=1.0e-6, metadata={"gt": 0, "doc": "|Δd·r| ≤ tol · (largest |Δd·r| of the step)"})
     forcing_max: float = field(default=1.0e-2, metadata={"gt": 0, "range": (None, 1.0), "doc": "largest relative tolerance of an iterative linear solve per Newton iteration (inexact Newton, Eisenstat–Walker η_max; direct solves are exact)"})
     max_cutbacks: int = field(default=6, metadata={"range": (0, None), "doc": "halvings of the load increment before giving up"})
     line_search: bool = True
