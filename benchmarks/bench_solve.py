@@ -658,10 +658,13 @@ def main(argv=None):
         if args.penalty is not None:
             cmd += ["--penalty", str(args.penalty)]
         t0 = time.perf_counter()
+        load0 = os.getloadavg()
         proc = subprocess.run(cmd, capture_output=True, text=True)
         got = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
         if got:
             cases.append(json.loads(got[-1][7:]))
+            # 1, 5 and 15 min load averages before and after the case: a timing is a record only on a quiet machine
+            cases[-1]["load_average"] = {"start": [round(x, 2) for x in load0], "end": [round(x, 2) for x in os.getloadavg()]}
             cases[-1]["command"] = " ".join([".venv/bin/python benchmarks/bench_solve.py --cases", case]
                                             + [f"--{k} {v}" for k, v in (("steps", args.steps), ("alpha", args.alpha))]
                                             + ([f"--penalty {args.penalty}"] if args.penalty is not None else []))
