@@ -19,7 +19,7 @@ written. Layout:
     before the first increment;
 ``/newton/<column>``
     Newton log rows of the converged steps (columns of :data:`pixmuscle.mechanics.results.NEWTON_COLUMNS`);
-``/solver/d`` (N, 3) cm, ``t``, ``alpha``, attribute ``counters`` (JSON)
+``/solver/d`` (N, 3) cm, ``t``, ``alpha``, attributes ``counters`` (JSON) and ``backend``
     the linear solver's memory after the last step (:class:`~pixmuscle.mechanics.linsolve.SolverMemory`):
     the state whose tangent its preconditioner or factors were built from, and its rebuild rule's
     counters; a resumed solve rebuilds them there and decides as the uninterrupted one. Absent for
@@ -118,6 +118,7 @@ def save_checkpoint(path: str | Path, records: Sequence[StepRecord], *, key: str
             g.create_dataset("t", data=float(mem.t))
             g.create_dataset("alpha", data=float(mem.alpha))
             g.attrs["counters"] = json.dumps({k: float(v) for k, v in mem.counters.items()})
+            g.attrs["backend"] = mem.backend
         rows = [row for r in records for row in r.rows]
         ng = f.create_group("newton")
         for c in NEWTON_COLUMNS:
@@ -150,10 +151,10 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
             if "solver" in f:
                 g = f["solver"]
                 mem = SolverMemory(d=np.asarray(g["d"][()], float), t=float(g["t"][()]), alpha=float(g["alpha"][()]),
-                                   counters=json.loads(g.attrs["counters"]))
+                                   counters=json.loads(g.attrs["counters"]), backend=str(g.attrs["backend"]))
             key = f.attrs["key"]
             n_steps = int(f.attrs["n_steps_planned"])
-        except KeyError as exc:
+        except (KeyError, ValueError) as exc:
             raise InputError(f"{path}: incomplete checkpoint ({exc})") from None
     key = key.decode() if isinstance(key, bytes) else str(key)
     n = cols["step"].shape[0]

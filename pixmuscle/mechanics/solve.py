@@ -609,8 +609,15 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
             on_step(dataclasses.replace(rec, state=system.evaluate(np.asarray(st.d, float), st.t, st.alpha)), replay=True)
         if done:
             info["resumed_after_step"] = len(done) - 1
-            if done[-1].solver is not None:  # the preconditioner or factors the interrupted solve held
-                linsolver.recall(system, done[-1].solver)
+            mem = done[-1].solver  # the preconditioner or factors the interrupted solve held
+            if mem is not None and mem.backend == linsolver.name:
+                t0 = time.perf_counter()
+                linsolver.recall(system, mem)
+                lin_time["setup_s"] += time.perf_counter() - t0
+            elif mem is not None:
+                _LOG.warning("the checkpoint's linear-solver memory is of backend %s, this solve uses %s: it starts "
+                             "afresh, and its forces agree with an uninterrupted run to the Newton tolerance only",
+                             mem.backend, linsolver.name)
         _newton.load_steps(system, cfg.steps, *ramp, cfg.newton, _Timed(), on_step=on_step, resume=done or None)
     except SolverError as exc:
         status = f"failed: {exc}"

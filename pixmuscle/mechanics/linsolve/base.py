@@ -113,12 +113,16 @@ class SolverMemory:
     counters : dict of str to float
         The backend's decision counters (e.g. the reference rate and the extra iterations of the
         AMG rebuild rule); NaN for "not set".
+    backend : str
+        Name of the backend that kept it (a resumed solve with another backend, e.g. ``auto``
+        on a machine without MKL, does not use it).
     """
 
     d: np.ndarray
     t: float
     alpha: float
     counters: dict
+    backend: str = ""
 
 
 def rigid_body_modes(X: np.ndarray) -> np.ndarray:

@@ -158,7 +158,7 @@ class KrylovAMGSolver(LinearSolver):
         if self._fresh or self._rate0 is None:
             return self.maxiter
         decades = max(np.log10(1.0 / rtol), 1.0)
-        return max(int(np.ceil(self._rate0 * decades + self.rebuild_cost - self._excess)), 1)
+        return min(max(int(np.ceil(self._rate0 * decades + self.rebuild_cost - self._excess)), 1), self.maxiter)
 
     def _account(self, its: int, rtol: float) -> None:
         """Ski-rental bookkeeping after a converged solve of ``its`` iterations to ``rtol``."""
@@ -185,7 +185,7 @@ class KrylovAMGSolver(LinearSolver):
         b = np.asarray(r, float)
         x, its, status = pcg(self._A, b, self._M, rtol, self._budget(rtol))
         total, method = its, "CG"
-        if status == "maxiter" and not self._fresh:
+        if status == "maxiter" and not self._fresh and total < self.maxiter:
             _LOG.debug("CG: %d iterations with a kept preconditioner cost more than a rebuild; rebuilding it", its)
             self._build()
             x, its, status = pcg(self._A, b, self._M, rtol, self.maxiter - total)
@@ -200,7 +200,7 @@ class KrylovAMGSolver(LinearSolver):
         self.info["krylov_iterations"] += total
         self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
         if status != "converged":
-            raise SolverError(f"cg_amg: {method} {status} after {its} iterations (relative residual target {rtol:.1e}); "
+            raise SolverError(f"cg_amg: {method} {status} after {total} iterations (relative residual target {rtol:.1e}); "
                               "check the boundary conditions (a free rigid-body motion makes K singular), or use "
                               "solver.backend: direct on small models")
         self._account(its, rtol)
@@ -211,13 +211,16 @@ class KrylovAMGSolver(LinearSolver):
         if self._built_at is None:
             return None
         rate = np.nan if self._rate0 is None else self._rate0
-        return SolverMemory(*self._built_at, counters={"rate0": rate, "excess": self._excess, "stale": float(self._stale)})
+        return SolverMemory(*self._built_at, counters={"rate0": rate, "excess": self._excess, "stale": float(self._stale)},
+                            backend=self.name)
 
     def recall(self, system, memory: SolverMemory) -> None:
-        """Build the hierarchy from the tangent at ``memory``'s state and restore the counters."""
-        self._M = None
-        self.prepare(system, system.evaluate(np.asarray(memory.d, float), memory.t, memory.alpha))
+        """Build the hierarchy from the tangent at ``memory``'s state and restore the counters (a
+        hierarchy the rule had marked stale is not rebuilt here: the next Newton system rebuilds it)."""
         c = memory.counters
+        self._M = None
+        if not c["stale"]:
+            self.prepare(system, system.evaluate(np.asarray(memory.d, float), memory.t, memory.alpha))
         self._rate0 = None if np.isnan(c["rate0"]) else float(c["rate0"])
         self._excess, self._stale = float(c["excess"]), bool(c["stale"])
 

@@ -229,10 +229,12 @@ class DirectSolver(LinearSolver):
 
     def memory(self) -> SolverMemory | None:
         """The state whose tangent the kept factors are of, and what the reuse rule holds of them
-        (None when they came from :meth:`factorize` without a state)."""
-        if self._factored_at is None:
+        (None when they came from :meth:`factorize` without a state, or the next system
+        refactorises anyway)."""
+        if self._factored_at is None or not self.policy.keep():  # none, or refactorised at the next system anyway
             return None
-        return SolverMemory(*self._factored_at, counters={"factors": float(_FACTORS.index(self.policy.factors))})
+        return SolverMemory(*self._factored_at, backend=self.name, counters={
+            "factors": float(_FACTORS.index(self.policy.factors)), "level": float(getattr(self.engine, "level", 0))})
 
     def recall(self, system, memory: SolverMemory) -> None:
         """Factorise the tangent at ``memory``'s state and restore the reuse rule's verdict on it."""
@@ -240,6 +242,8 @@ class DirectSolver(LinearSolver):
         self._system = self._state = None
         self._K, self._op = system.stiffness(state), None
         self._K_at = (np.asarray(memory.d, float), float(memory.t), float(memory.alpha))
+        if hasattr(self.engine, "level"):  # SuperLU's pivoting level, raised by earlier tangents
+            self.engine.level = int(memory.counters.get("level", self.engine.level))
         self._refactor()
         self._op = self._K
         self.policy.factors = _FACTORS[int(memory.counters["factors"])]

@@ -383,12 +383,14 @@ class MixedBlockSolver(KrylovAMGSolver):
             budget = self.maxiter - total if attempt else self._budget(rtol)
             z, its, status = fgmres(A, rhs, P, target, budget, restart=self.restart, check=check)
             total += its
-            if status == "maxiter" and not self._fresh and attempt == 0:
+            if status == "maxiter" and not self._fresh and attempt == 0 and total < self.maxiter:
                 # the kept preconditioner has cost more than a rebuild: rebuild it and start again
                 _LOG.debug("FGMRES: %d iterations with a kept preconditioner cost more than a rebuild; rebuilding it", its)
                 self._build()
                 self._refresh()
                 stale = total
+                verdict.clear()  # the new preconditioner's iterations show their own lag
+                verdict.update(lag=lag, target=target)
                 z, its, status = fgmres(A, rhs, P, target, self.maxiter - total, restart=self.restart, check=check)
                 total += its
             x = x + z[:n]
