@@ -383,6 +383,32 @@ def test_cg_amg_rebuilds_when_stale_iterations_cost_a_build():
     assert np.linalg.norm(K @ x - r) <= 1e-8 * np.linalg.norm(r) * 1.01
 
 
+def test_a_fresh_hierarchy_gives_up_on_a_system_far_harder_than_the_earlier_ones():
+    """Right after a build, a solve may take ``give_up`` × the last measured rate × decades +
+    ``rebuild_cost`` iterations; beyond, it fails (SolverError: Newton then takes the converged
+    tangent or a smaller increment) instead of running to ``maxiter``."""
+    from pixmuscle.errors import SolverError
+    from pixmuscle.mechanics.linsolve import KrylovAMGSolver
+
+    model = _mixed_leg_like_model()
+    system = _system(model)
+    state = system.evaluate(np.zeros((model.n_nodes, 3)), 1.0, 0.5)
+    r = state.r.ravel()
+    s = KrylovAMGSolver(model.X, model.ijk, give_up=4.0, rebuild_cost=1)
+    s.prepare(system, state)
+    s.solve(r, rtol=1e-8)  # no rate known yet: up to maxiter
+    its = s.info["iterations"]
+    s._stale = True
+    s.prepare(system, state)  # a fresh hierarchy of the same tangent: within 4 × the rate
+    s.solve(r, rtol=1e-8)
+    assert s.info["preconditioner_builds"] == 2 and s.info["iterations"] == its
+    s.give_up, s._stale = 0.1, True  # now the same system counts as ten times harder than allowed
+    s.prepare(system, state)
+    with pytest.raises(SolverError, match="maxiter after"):
+        s.solve(r, rtol=1e-8)
+    assert s.info["iterations"] == int(np.ceil(0.1 * its + 1))
+
+
 def test_cg_amg_solves_an_indefinite_tangent_by_fgmres():
     """Negative curvature stops CG; the same system is then solved by FGMRES with the same AMG
     preconditioner, to the requested residual (checked against a dense solve)."""

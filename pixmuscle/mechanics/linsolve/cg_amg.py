@@ -44,6 +44,7 @@ class CGAMGOptions(Iterative):
     """Options of ``solve.solver: {backend: cg_amg, …}``: tolerance, iterations, rebuild cost."""
 
     rebuild_cost: int = field(default=100, metadata={"range": (1, None), "doc": "what a build of the AMG hierarchy costs, in Krylov iterations: the hierarchy is rebuilt once the iterations beyond its rate right after the last build add up to this many (within a solve too). Counted in iterations, not seconds, so that a run repeats itself exactly"})
+    give_up: float = field(default=4.0, metadata={"gt": 0, "doc": "a solve with a hierarchy that has not yet converged a solve stops after give_up × (the last measured iterations per decade) × decades + rebuild_cost iterations: such a system is far harder than the earlier ones (an overshooting Newton update), and Newton does better to take the last converged state's tangent or a smaller load increment"})
 
 
 @BACKENDS.register("cg_amg", options=CGAMGOptions)
@@ -70,6 +71,9 @@ class KrylovAMGSolver(LinearSolver):
         FGMRES basis size for an indefinite system (below).
     rebuild_cost : int
         What one build of the hierarchy costs, in Krylov iterations (below).
+    give_up : float
+        A hierarchy that has not converged a solve yet gets ``give_up`` times the last measured
+        rate (below).
 
     Notes
     -----
@@ -83,7 +87,12 @@ class KrylovAMGSolver(LinearSolver):
     account exceeds ``rebuild_cost`` the hierarchy is rebuilt from the next Newton iteration's
     tangent, and a solve that exceeds it on its own is stopped there, the hierarchy rebuilt from
     its tangent and the solve started again. So the iterations lost to a stale preconditioner
-    never exceed what a rebuild costs. A build (filtered matrix, AMG set-up, and for
+    never exceed what a rebuild costs. A hierarchy that has not yet converged a solve (right
+    after a build) gets ``give_up`` × the last measured rate × decades + ``rebuild_cost``
+    iterations; a system that needs more is far harder than the earlier ones (on the 74k leg:
+    the state after an overshooting first update of an activation step, where a fresh hierarchy
+    did not converge in 700 iterations), and the solve fails, so that Newton takes the last
+    converged state's tangent or cuts the load increment back instead of iterating for an hour. A build (filtered matrix, AMG set-up, and for
     ``mixed_amg`` the probed Schur diagonal) takes the time of ~130 FGMRES iterations of
     ``mixed_amg`` at both 21k and 74k nodes (60 s against 0.47 s per iteration, 223 s against
     1.7 s), hence the default of 100. The rule counts iterations, not seconds, so that two runs
@@ -95,9 +104,10 @@ class KrylovAMGSolver(LinearSolver):
     name = "cg_amg"
 
     def __init__(self, X, ijk, rtol: float = 1e-8, maxiter: int = 2000, reach: int = 2, aggregate=(3, 3, 1),
-                 theta: float = 0.1, restart: int = 100, rebuild_cost: int = 100):
+                 theta: float = 0.1, restart: int = 100, rebuild_cost: int = 100, give_up: float = 4.0):
         super().__init__()
         self.rebuild_cost = rebuild_cost
+        self.give_up = give_up
         self.restart = restart
         self.B = rigid_body_modes(X)
         self.ijk = np.asarray(ijk)
@@ -108,6 +118,7 @@ class KrylovAMGSolver(LinearSolver):
         self.theta = theta
         self._M = None
         self._rate0 = None
+        self._rate_last = None  # the last reference rate measured, of this hierarchy or an earlier one
         self._excess = 0.0  # Krylov iterations beyond the reference rate since the last build
         self._stale = True
         self._system = None
@@ -152,19 +163,24 @@ class KrylovAMGSolver(LinearSolver):
         return self._system.preconditioner_matrix(self._state, self.reach)
 
     def _budget(self, rtol: float) -> int:
-        """Iterations the kept hierarchy may take on a solve to ``rtol`` before it is rebuilt:
-        its reference rate's prediction plus what is left of the rebuild cost (all of
-        ``maxiter`` for a fresh hierarchy, whose first solve sets the rate)."""
-        if self._fresh or self._rate0 is None:
-            return self.maxiter
+        """Iterations a solve to ``rtol`` may take: with a kept hierarchy, its reference rate's
+        prediction plus what is left of the rebuild cost (then it is rebuilt); with a hierarchy
+        that has not converged a solve yet, ``give_up`` times the last measured rate's prediction
+        plus the rebuild cost (then the solve fails); ``maxiter`` before any rate is known."""
         decades = max(np.log10(1.0 / rtol), 1.0)
-        return min(max(int(np.ceil(self._rate0 * decades + self.rebuild_cost - self._excess)), 1), self.maxiter)
+        if self._fresh or self._rate0 is None:
+            if self._rate_last is None:
+                return self.maxiter
+            budget = self.give_up * self._rate_last * decades + self.rebuild_cost
+        else:
+            budget = self._rate0 * decades + self.rebuild_cost - self._excess
+        return min(max(int(np.ceil(budget)), 1), self.maxiter)
 
     def _account(self, its: int, rtol: float) -> None:
         """Ski-rental bookkeeping after a converged solve of ``its`` iterations to ``rtol``."""
         decades = max(np.log10(1.0 / rtol), 1.0)
         if self._rate0 is None:
-            self._rate0 = max(its / decades, 1.0)
+            self._rate0 = self._rate_last = max(its / decades, 1.0)
         elif its > 0:
             self._excess += max(its - self._rate0 * decades, 0.0)
             if self._excess > self.rebuild_cost:
@@ -188,7 +204,7 @@ class KrylovAMGSolver(LinearSolver):
         if status == "maxiter" and not self._fresh and total < self.maxiter:
             _LOG.debug("CG: %d iterations with a kept preconditioner cost more than a rebuild; rebuilding it", its)
             self._build()
-            x, its, status = pcg(self._A, b, self._M, rtol, self.maxiter - total)
+            x, its, status = pcg(self._A, b, self._M, rtol, min(self._budget(rtol), self.maxiter - total))
             total += its
         if status == "breakdown":  # negative curvature: the tangent is indefinite here
             _LOG.debug("CG met negative curvature after %d iterations; solving by FGMRES", its)
@@ -211,7 +227,8 @@ class KrylovAMGSolver(LinearSolver):
         if self._built_at is None:
             return None
         rate = np.nan if self._rate0 is None else self._rate0
-        return SolverMemory(*self._built_at, counters={"rate0": rate, "excess": self._excess, "stale": float(self._stale)},
+        return SolverMemory(*self._built_at, counters={"rate0": rate, "excess": self._excess, "stale": float(self._stale),
+                                                        "rate_last": np.nan if self._rate_last is None else self._rate_last},
                             backend=self.name)
 
     def recall(self, system, memory: SolverMemory) -> None:
@@ -223,6 +240,8 @@ class KrylovAMGSolver(LinearSolver):
             self.prepare(system, system.evaluate(np.asarray(memory.d, float), memory.t, memory.alpha))
         self._rate0 = None if np.isnan(c["rate0"]) else float(c["rate0"])
         self._excess, self._stale = float(c["excess"]), bool(c["stale"])
+        last = c.get("rate_last", np.nan)
+        self._rate_last = None if np.isnan(last) else float(last)
 
     def statistics(self) -> dict:
         """Name, ``preconditioner_builds``, ``krylov_iterations`` (all solves) and

@@ -391,7 +391,8 @@ class MixedBlockSolver(KrylovAMGSolver):
                 stale = total
                 verdict.clear()  # the new preconditioner's iterations show their own lag
                 verdict.update(lag=lag, target=target)
-                z, its, status = fgmres(A, rhs, P, target, self.maxiter - total, restart=self.restart, check=check)
+                z, its, status = fgmres(A, rhs, P, target, min(self._budget(rtol), self.maxiter - total),
+                                        restart=self.restart, check=check)
                 total += its
             x = x + z[:n]
             if status != "converged" or not verdict.get("refine"):
