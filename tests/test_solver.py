@@ -404,7 +404,7 @@ def test_a_fresh_hierarchy_gives_up_on_a_system_far_harder_than_the_earlier_ones
     assert s.info["preconditioner_builds"] == 2 and s.info["iterations"] == its
     s.give_up, s._stale = 0.1, True  # now the same system counts as ten times harder than allowed
     s.prepare(system, state)
-    with pytest.raises(SolverError, match="maxiter after"):
+    with pytest.raises(SolverError, match="gave up after .* far more than the earlier ones"):
         s.solve(r, rtol=1e-8)
     assert s.info["iterations"] == int(np.ceil(0.1 * its + 1))
 

@@ -176,6 +176,15 @@ class KrylovAMGSolver(LinearSolver):
             budget = self._rate0 * decades + self.rebuild_cost - self._excess
         return min(max(int(np.ceil(budget)), 1), self.maxiter)
 
+    def _failure(self, what: str, total: int, rtol: float) -> str:
+        """The message of a solve that did not converge in ``total`` iterations."""
+        if total < self.maxiter:  # stopped by the give-up budget
+            return (f"{self.name}: {what} gave up after {total} iterations (relative residual target {rtol:.1e}): this "
+                    f"system needs far more than the earlier ones (solver.give_up: {self.give_up:g}), e.g. after an "
+                    "overshooting Newton update; a smaller load increment (solve.steps) helps")
+        return (f"{self.name}: {what} after {total} iterations (relative residual target {rtol:.1e}); check the boundary "
+                "conditions (a free rigid-body motion makes K singular), or use solver.backend: direct on small models")
+
     def _account(self, its: int, rtol: float) -> None:
         """Ski-rental bookkeeping after a converged solve of ``its`` iterations to ``rtol``."""
         decades = max(np.log10(1.0 / rtol), 1.0)
@@ -216,9 +225,7 @@ class KrylovAMGSolver(LinearSolver):
         self.info["krylov_iterations"] += total
         self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
         if status != "converged":
-            raise SolverError(f"cg_amg: {method} {status} after {total} iterations (relative residual target {rtol:.1e}); "
-                              "check the boundary conditions (a free rigid-body motion makes K singular), or use "
-                              "solver.backend: direct on small models")
+            raise SolverError(self._failure(f"{method} {status}", total, rtol))
         self._account(its, rtol)
         return x
 

@@ -405,9 +405,7 @@ class MixedBlockSolver(KrylovAMGSolver):
         self.info["krylov_iterations"] += total
         self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
         if status != "converged":
-            raise SolverError(f"mixed_amg: FGMRES {status} after {total} iterations (relative residual target "
-                              f"{rtol:.1e}); check the boundary conditions (a free rigid-body motion makes K "
-                              "singular), or use solver.backend: direct on small models")
+            raise SolverError(self._failure(f"FGMRES {status}", total, rtol))
         self._account(total - stale, rtol)  # the iterations of the preconditioner in use now
         return x
 
