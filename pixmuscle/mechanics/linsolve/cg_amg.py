@@ -92,13 +92,13 @@ class KrylovAMGSolver(LinearSolver):
     iterations; a system that needs more is far harder than the earlier ones (on the 74k leg:
     the state after an overshooting first update of an activation step, where a fresh hierarchy
     did not converge in 700 iterations), and the solve fails, so that Newton takes the last
-    converged state's tangent or cuts the load increment back instead of iterating for an hour. A build (filtered matrix, AMG set-up, and for
-    ``mixed_amg`` the probed Schur diagonal) takes the time of ~130 FGMRES iterations of
-    ``mixed_amg`` at both 21k and 74k nodes (60 s against 0.47 s per iteration, 223 s against
-    1.7 s), hence the default of 100. The rule counts iterations, not seconds, so that two runs
-    of the same config take the same decisions and give the same numbers. The matrix-free
-    operator is always the exact tangent, so a stale preconditioner costs iterations, never
-    accuracy.
+    converged state's tangent or cuts the load increment back instead of iterating for an hour.
+    A build (filtered matrix, AMG set-up, and for ``mixed_amg`` the probed Schur diagonal) takes
+    the time of ~130 FGMRES iterations of ``mixed_amg`` at both 21k and 74k nodes (60 s against
+    0.47 s per iteration, 223 s against 1.7 s), hence the default of 100. The rule counts
+    iterations, not seconds, so that two runs of the same config take the same decisions and give
+    the same numbers. The matrix-free operator is always the exact tangent, so a stale
+    preconditioner costs iterations, never accuracy.
     """
 
     name = "cg_amg"
@@ -176,10 +176,11 @@ class KrylovAMGSolver(LinearSolver):
             budget = self._rate0 * decades + self.rebuild_cost - self._excess
         return min(max(int(np.ceil(budget)), 1), self.maxiter)
 
-    def _failure(self, what: str, total: int, rtol: float) -> str:
-        """The message of a solve that did not converge in ``total`` iterations."""
-        if total < self.maxiter:  # stopped by the give-up budget
-            return (f"{self.name}: {what} gave up after {total} iterations (relative residual target {rtol:.1e}): this "
+    def _failure(self, method: str, status: str, total: int, rtol: float) -> str:
+        """The message of a solve by ``method`` that ended with ``status`` after ``total`` iterations."""
+        what = f"{method} {status}"
+        if status == "maxiter" and total < self.maxiter:  # stopped by the give-up budget
+            return (f"{self.name}: {method} gave up after {total} iterations (relative residual target {rtol:.1e}): this "
                     f"system needs far more than the earlier ones (solver.give_up: {self.give_up:g}), e.g. after an "
                     "overshooting Newton update; a smaller load increment (solve.steps) helps")
         return (f"{self.name}: {what} after {total} iterations (relative residual target {rtol:.1e}); check the boundary "
@@ -225,7 +226,7 @@ class KrylovAMGSolver(LinearSolver):
         self.info["krylov_iterations"] += total
         self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
         if status != "converged":
-            raise SolverError(self._failure(f"{method} {status}", total, rtol))
+            raise SolverError(self._failure(method, status, total, rtol))
         self._account(its, rtol)
         return x
 

@@ -405,7 +405,7 @@ class MixedBlockSolver(KrylovAMGSolver):
         self.info["krylov_iterations"] += total
         self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
         if status != "converged":
-            raise SolverError(self._failure(f"FGMRES {status}", total, rtol))
+            raise SolverError(self._failure("FGMRES", status, total, rtol))
         self._account(total - stale, rtol)  # the iterations of the preconditioner in use now
         return x
 
