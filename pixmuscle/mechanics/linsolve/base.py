@@ -100,6 +100,12 @@ class LinearSolver:
         ``memory``'s state, and the counters of the rules that decide when to rebuild them."""
 
 
+def built_from(state) -> tuple:
+    """(d (N, 3) cm, copied; t; α) of an evaluated ``state``: what a backend keeps to say which
+    tangent its factors or preconditioner are of (:class:`SolverMemory`)."""
+    return np.array(state.d, float), float(state.t), float(state.alpha)
+
+
 @dataclasses.dataclass
 class SolverMemory:
     """A backend's kept preconditioner or factors, as a state to rebuild them from, and its counters.

@@ -18,7 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...errors import SolverError
-from .base import BACKENDS, Iterative, LinearSolver, SolverMemory, pcg, rigid_body_modes
+from .base import BACKENDS, Iterative, LinearSolver, SolverMemory, built_from, pcg, rigid_body_modes
 from .fgmres import fgmres
 
 _LOG = logging.getLogger(__name__)
@@ -155,8 +155,7 @@ class KrylovAMGSolver(LinearSolver):
         self._excess = 0.0
         self._stale = False
         self._fresh = True
-        st = self._state
-        self._built_at = (np.array(st.d, float), float(st.t), float(st.alpha))
+        self._built_at = built_from(self._state)
 
     def _stand_in(self) -> sp.bsr_matrix:
         """The matrix the AMG hierarchy is built from: a filtered positive stand-in of the tangent."""

@@ -11,7 +11,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 from ...errors import SolverError
-from .base import BACKENDS, LinearSolver, SolverMemory, Tolerance, pcg
+from .base import BACKENDS, LinearSolver, SolverMemory, Tolerance, built_from, pcg
 from .factorization import ENGINES, PARDISO_MISSING, engine_name
 
 
@@ -191,7 +191,7 @@ class DirectSolver(LinearSolver):
 
     def _take(self, K, state):
         self._K = K
-        self._K_at = None if state is None else (np.array(state.d, float), float(state.t), float(state.alpha))
+        self._K_at = None if state is None else built_from(state)
         self._op = K
         self.info["setup_s"] = 0.0
         if self.policy.must_factorize():
@@ -214,8 +214,7 @@ class DirectSolver(LinearSolver):
                 if self._K is None:  # matrix-free reuse: assemble the current tangent now
                     t1 = time.perf_counter()
                     self._K = self._system.stiffness(self._state)
-                    st = self._state
-                    self._K_at = (np.array(st.d, float), float(st.t), float(st.alpha))
+                    self._K_at = built_from(self._state)
                     self.info["setup_s"] += time.perf_counter() - t1
                 self._refactor()
             else:
@@ -241,7 +240,7 @@ class DirectSolver(LinearSolver):
         state = system.evaluate(np.asarray(memory.d, float), memory.t, memory.alpha)
         self._system = self._state = None
         self._K, self._op = system.stiffness(state), None
-        self._K_at = (np.asarray(memory.d, float), float(memory.t), float(memory.alpha))
+        self._K_at = built_from(state)
         if hasattr(self.engine, "level"):  # SuperLU's pivoting level, raised by earlier tangents
             self.engine.level = int(memory.counters.get("level", self.engine.level))
         self._refactor()
