@@ -58,9 +58,11 @@ BACKENDS = {
     "direct": {"backend": "direct", "reuse_factorization": False},           # PARDISO if MKL is installed; factorise every time
     "direct_reuse": {"backend": "direct", "reuse_factorization": True},      # kept factors precondition CG
     "superlu": {"backend": "direct", "engine": "superlu"},
-    "cg_amg": {"backend": "cg_amg"},
+    "cg_amg": {"backend": "cg_amg"},                                          # hypre BoomerAMG where installed
     "mixed_amg": {"backend": "mixed_amg"},
     "auto": {"backend": "auto"},                                              # the shipped default
+    "mixed_amg_pyamg": {"backend": "mixed_amg", "amg": "pyamg"},
+    "auto_pyamg": {"backend": "auto", "amg": "pyamg"},
 }
 
 
@@ -166,6 +168,7 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
         "cg_iterations_per_newton": round(float(np.mean(lin)), 1) if backend != "direct" else None,
         "cg_s_per_iteration": round(info["linear_solve_s"] / max(np.sum(lin), 1), 4) if backend == "cg_amg" else None,
         "preconditioner_builds": info.get("preconditioner_builds"),
+        "amg": info.get("amg"),
         "factorizations": info.get("factorizations"),
         "direct_engine": info.get("linear_engine"),
         "factor_nnz_per_row": round(info["factor_nnz"] / (3 * model.n_nodes), 1) if info.get("factor_nnz") else None,
@@ -417,6 +420,37 @@ def _positive_pivots(upper) -> int:
     return int(pos)
 
 
+def multigrid(size: str, penalty: float | None, amg: str) -> dict:
+    """The first Newton system of load step 1 (d = 0, α = 0.095) at ``size`` solved by ``mixed_amg``
+    with the multigrid ``amg`` (pyamg or hypre): preconditioner set-up (stand-in fill, AMG, region
+    solves, Schur probe), one application of the displacement block's preconditioner (V-cycle and
+    region solves), the matrix-free product, and FGMRES to 10⁻⁶ (iterations, seconds)."""
+    from pixmuscle.mechanics.linsolve import make_solver
+    from pixmuscle.mechanics.solve import build_system
+
+    model, cfg = leg_case(size, penalty)
+    system, _ = build_system(model, cfg)
+    state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.095)
+    solver = make_solver("mixed_amg", model.X, ijk=model.ijk, amg=amg)
+    out = {"size": size, "amg": amg, "nodes": model.n_nodes}
+    t = time.perf_counter()
+    solver.prepare(system, state)
+    out["setup_s"] = round(time.perf_counter() - t, 1)
+    v = np.random.default_rng(0).standard_normal(3 * model.n_nodes)
+    for name, f in (("displacement_preconditioner_s", lambda: solver._M @ v), ("matvec_s", lambda: solver._A @ v)):
+        f()
+        t = time.perf_counter()
+        for _ in range(3):
+            f()
+        out[name] = round((time.perf_counter() - t) / 3, 3)
+    t = time.perf_counter()
+    solver.solve(state.r.ravel(), rtol=1e-6)
+    out["solve_s"] = round(time.perf_counter() - t, 1)
+    out.update(fgmres_iterations=solver.info["iterations"], s_per_iteration=round(out["solve_s"] / solver.info["iterations"], 3),
+               peak_rss_GB=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2))
+    return out
+
+
 def probe_direct(size: str, penalty: float | None) -> dict:
     """PARDISO's symbolic analysis of the full tangent at ``size``: predicted factor size and
     flops of one factorisation, without factorising (for sizes where that would not fit)."""
@@ -578,6 +612,10 @@ def main(argv=None):
     p.add_argument("--conditioning", default=None, metavar="SIZE",
                    help="Krylov iterations of one Newton system at SIZE with the bulk moduli x0.1, x1, x10 for each "
                         "--variants; writes results/bench_solve_conditioning_SIZE.json")
+    p.add_argument("--multigrid", default=None, metavar="SIZE",
+                   help="the first Newton system at SIZE by mixed_amg with --amg: set-up, preconditioner and product "
+                        "seconds, FGMRES iterations to 1e-6; adds a row to results/bench_solve_multigrid.json")
+    p.add_argument("--amg", default="hypre", choices=("hypre", "pyamg"), help="--multigrid: the multigrid")
     p.add_argument("--infsup", default=None, metavar="SIZE",
                    help="small eigenvalues of the patch-pressure Schur complement against the 1/mu-scaled pressure "
                         "mass (--patch, --held; counts by inertia at any size, whole spectrum up to 2k nodes); "
@@ -600,6 +638,16 @@ def main(argv=None):
         path = OUT / "bench_solve_infsup.json"
         rows = json.loads(path.read_text())["rows"] if path.exists() else []
         rows = [r for r in rows if (r["size"], r["patch"], r["held_single_patches_in"]) != (res["size"], res["patch"], res["held_single_patches_in"])]
+        path.write_text(json.dumps({"rows": rows + [res]}, indent=1))
+        print(json.dumps(res, indent=1))
+        return 0
+    if args.multigrid:  # one row per (size, amg) in bench_solve_multigrid.json
+        res = multigrid(args.multigrid, args.penalty, args.amg)
+        res.update(command=".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv),
+                   load_average=[round(x, 2) for x in os.getloadavg()])
+        path = OUT / "bench_solve_multigrid.json"
+        rows = json.loads(path.read_text())["rows"] if path.exists() else []
+        rows = [r for r in rows if (r["size"], r["amg"]) != (res["size"], res["amg"])]
         path.write_text(json.dumps({"rows": rows + [res]}, indent=1))
         print(json.dumps(res, indent=1))
         return 0

@@ -22,6 +22,11 @@ class SolverError(PixmuscleError, RuntimeError):
     """A numerical failure: non-convergence after all cutbacks, inverted material points, ..."""
 
 
+class SolverGaveUp(SolverError):
+    """A linear solve abandoned because its system needs far more iterations than the earlier ones
+    (an overshooting Newton update): Newton cuts the load increment back instead of iterating on."""
+
+
 class OutputError(PixmuscleError, OSError):
     """An output that cannot be written (disk full, read-only file system); nothing partial is left."""
 

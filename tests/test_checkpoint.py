@@ -154,17 +154,18 @@ def test_resume_from_a_checkpoint_file_matches(tmp_path, backend, ramp):
 
 
 def test_solver_memory_of_another_backend_is_not_used(caplog):
-    """``auto`` can pick another backend on another machine (with or without MKL) for the same
-    config: the memory is then not recalled, the solve says so and resumes afresh."""
+    """``auto`` can pick another backend on another machine (with or without MKL, with or without
+    petsc4py for the multigrid) for the same config: the memory is then not recalled, the solve says
+    so and resumes afresh."""
     raw = dict(ACTIVE, steps=3)
     model = mask_model(np.ones((3, 3, 4), bool), (0.2, 0.2, 0.3), tissue=1)
     recs = []
-    full = solve(model, parse_section(SolveConfig, dict(raw, solver={"backend": "cg_amg"}), "solve"),
+    full = solve(model, parse_section(SolveConfig, dict(raw, solver={"backend": "cg_amg", "amg": "pyamg"}), "solve"),
                  on_checkpoint=lambda r: recs.append(list(r)))
-    assert recs[1][-1].solver.backend == "cg_amg"
+    assert recs[1][-1].solver.backend == "cg_amg/pyamg"
     with caplog.at_level(logging.WARNING, logger="pixmuscle"):
         res = solve(model, parse_section(SolveConfig, dict(raw, solver={"backend": "direct"}), "solve"), resume=recs[1])
-    assert "the checkpoint's linear-solver memory is of backend cg_amg, this solve uses direct" in caplog.text
+    assert "the checkpoint's linear-solver memory is of backend cg_amg/pyamg, this solve uses direct" in caplog.text
     assert res.status == "complete" and res.info["resumed_after_step"] == 1
     rel = max(_rel(res.reaction[name], full.reaction[name]) for name in full.reaction)
     assert rel < 1e-5  # the Newton tolerance (10⁻⁴) lets two solvers differ this much, no more

@@ -83,3 +83,41 @@ def test_clamped_oblique_block_converges_in_15_iterations_per_step_without_cutba
     assert loose.status == "complete" and sum(loose.cutbacks) == 0
     assert sum(loose.iterations) < sum(res.iterations) and max(loose.iterations) <= 20
     assert np.isclose(loose.force("z_max")[-1], 36.98156892557705, rtol=1e-6)
+
+
+def test_a_linear_solve_that_gives_up_cuts_the_increment_back():
+    """A linear solver that gives up (SolverGaveUp: a system far harder than the earlier ones, the
+    mark of an overshooting update) fails the attempt at once: Newton does not try the converged
+    tangent, the increment is halved, and the step still reaches the force of a run without it."""
+    from pixmuscle.errors import SolverGaveUp
+    from pixmuscle.mechanics.linsolve import make_solver
+    from pixmuscle.mechanics.newton import load_steps
+
+    model = _block(0.4)
+    cfg = _cfg(steps=5, newton={"residual_tol": 1e-8, "energy_tol": 1e-14})
+    system, _ = build_system(model, cfg)
+
+    class GivesUpOnce:
+        """Direct solves; the third Newton system of load step 1 gives up, once."""
+
+        def __init__(self):
+            self.inner, self.prepared, self.calls = make_solver("direct", model.X, ijk=model.ijk), [], 0
+
+        def prepare(self, system, state):
+            self.prepared.append(state.t)
+            self.inner.prepare(system, state)
+
+        def solve(self, r, rtol=None):
+            self.calls += 1
+            if self.calls == 3:  # step 0 needs none
+                raise SolverGaveUp("gave up")
+            return self.inner.solve(r, rtol)
+
+    plain = load_steps(system, 5, 0.0, 0.95, cfg.newton, make_solver("direct", model.X, ijk=model.ijk))
+    lin = GivesUpOnce()
+    recs = load_steps(system, 5, 0.0, 0.95, cfg.newton, lin)
+    assert [r.cutbacks for r in plain] == [0] * 6 and [r.cutbacks for r in recs] == [0, 1, 0, 0, 0, 0]
+    # the give-up (third system at t = 0.2) is followed by the first system of the halved increment
+    # (t = 0.1), not by the converged state's tangent (t = 0)
+    assert lin.prepared[:4] == [0.2, 0.2, 0.2, 0.1]
+    assert np.allclose(recs[-1].state.d, plain[-1].state.d, atol=1e-6 * np.abs(plain[-1].state.d).max())

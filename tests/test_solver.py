@@ -15,9 +15,11 @@ from pixmuscle.io.model import save_model
 from pixmuscle.io.results import load_results
 from pixmuscle.mechanics import pardiso
 from pixmuscle.mechanics.config import SolveConfig
-from pixmuscle.mechanics.linsolve import DirectSolver, make_solver, voxel_aggregates
+from pixmuscle.mechanics.linsolve import DirectSolver, make_solver, multigrid, voxel_aggregates
 from pixmuscle.mechanics.solve import solve
 from pixmuscle.verify.mechanics import isometric_check, mask_model, oblique_check, roller_bcs, uniaxial_check
+
+needs_hypre = pytest.mark.skipif(not multigrid.hypre_available(), reason="petsc4py with hypre is not installed")
 
 EXAMPLE = """
 solve:
@@ -301,8 +303,9 @@ def test_voxel_aggregates_group_boxes():
 def test_every_backend_gives_the_direct_solution():
     """Every backend at Newton 10⁻⁸ reproduces the SuperLU solution of an activation sweep at 10⁻¹⁰,
     forces to 1e-6 relative and displacement fields to 1e-4 of the largest |u| at every
-    load step: cg_amg, PARDISO (when MKL is installed), PARDISO and SuperLU with factor reuse (CG
-    on the matrix-free tangent) and any other registered backend; the shipped defaults (Newton
+    load step: cg_amg and mixed_amg with pyamg and (where petsc4py is installed) hypre BoomerAMG,
+    PARDISO (when MKL is installed), PARDISO and SuperLU with factor reuse (CG on the matrix-free
+    tangent) and any other registered backend; the shipped defaults (Newton
     10⁻⁴) give the forces to 1e-5."""
     from pixmuscle.mechanics.linsolve import BACKENDS
 
@@ -311,7 +314,11 @@ def test_every_backend_gives_the_direct_solution():
     tight = {"residual_tol": 1e-10, "energy_tol": 1e-18}
     variants = {"superlu": {"backend": "direct", "engine": "superlu", "reuse_factorization": False},
                 "superlu_reuse": {"backend": "direct", "engine": "superlu"},
-                "cg_amg": {"backend": "cg_amg"}}
+                "cg_amg": {"backend": "cg_amg", "amg": "pyamg"},
+                "mixed_amg_pyamg": {"backend": "mixed_amg", "amg": "pyamg"}}
+    if multigrid.hypre_available():
+        variants["cg_amg_hypre"] = {"backend": "cg_amg", "amg": "hypre"}
+        variants["mixed_amg_hypre"] = {"backend": "mixed_amg", "amg": "hypre"}
     if pardiso.available():
         variants["pardiso"] = {"backend": "direct", "engine": "pardiso", "reuse_factorization": False}
         variants["pardiso_reuse"] = {"backend": "direct", "engine": "pardiso", "reuse_factorization": True}
@@ -385,9 +392,9 @@ def test_cg_amg_rebuilds_when_stale_iterations_cost_a_build():
 
 def test_a_fresh_hierarchy_gives_up_on_a_system_far_harder_than_the_earlier_ones():
     """Right after a build, a solve may take ``give_up`` × the last measured rate × decades +
-    ``rebuild_cost`` iterations; beyond, it fails (SolverError: Newton then takes the converged
-    tangent or a smaller increment) instead of running to ``maxiter``."""
-    from pixmuscle.errors import SolverError
+    ``rebuild_cost`` iterations; beyond, it fails (SolverGaveUp: Newton then cuts the increment
+    back) instead of running to ``maxiter``, and the next system gets a new hierarchy."""
+    from pixmuscle.errors import SolverGaveUp
     from pixmuscle.mechanics.linsolve import KrylovAMGSolver
 
     model = _mixed_leg_like_model()
@@ -404,14 +411,19 @@ def test_a_fresh_hierarchy_gives_up_on_a_system_far_harder_than_the_earlier_ones
     assert s.info["preconditioner_builds"] == 2 and s.info["iterations"] == its
     s.give_up, s._stale = 0.1, True  # now the same system counts as ten times harder than allowed
     s.prepare(system, state)
-    with pytest.raises(SolverError, match="gave up after .* far more than the earlier ones"):
+    with pytest.raises(SolverGaveUp, match="gave up after .* far more than the earlier ones"):
         s.solve(r, rtol=1e-8)
     assert s.info["iterations"] == int(np.ceil(0.1 * its + 1))
+    s.prepare(system, state)  # Newton leaves the state the hierarchy was built for: a new one
+    assert s.info["preconditioner_builds"] == 4
 
 
-def test_cg_amg_solves_an_indefinite_tangent_by_fgmres():
+@pytest.mark.parametrize("amg", ["pyamg", pytest.param("hypre", marks=needs_hypre)])
+def test_cg_amg_solves_an_indefinite_tangent_by_fgmres(amg):
     """Negative curvature stops CG; the same system is then solved by FGMRES with the same AMG
-    preconditioner, to the requested residual (checked against a dense solve)."""
+    preconditioner, to the requested residual (checked against a dense solve). The shifted system
+    (591 unknowns, three negative eigenvalues) is far from what either multigrid is built for, so
+    FGMRES keeps a full basis (with BoomerAMG and restarts at 100 it stalls)."""
     from pixmuscle.mechanics.linsolve import KrylovAMGSolver
 
     model = _mixed_leg_like_model()
@@ -423,7 +435,7 @@ def test_cg_amg_solves_an_indefinite_tangent_by_fgmres():
     lam = np.linalg.eigvalsh(0.5 * (K + K.T))
     shift = 0.5 * (lam[2] + lam[3])  # three negative eigenvalues, none near zero
     A = K - shift * np.eye(K.shape[0])
-    s = KrylovAMGSolver(model.X, model.ijk)
+    s = KrylovAMGSolver(model.X, model.ijk, amg=amg, restart=600)
     s.prepare(system, state)
     s._A = spla.aslinearoperator(A)
     b = np.random.default_rng(3).standard_normal(K.shape[0])

@@ -35,7 +35,10 @@ convergence").
 
 Line search (:func:`line_search`): an energy line search — the step factor s is the root of
 Π′(s) = −Δd·r(d + sΔd), bracketed and interpolated by regula falsi, unless the full step already
-lowers ‖r‖. A step that still fails, a non-finite residual, or no convergence in
+lowers ‖r‖. A step that still fails, a non-finite residual, a linear solve that gives
+up (:class:`~pixmuscle.errors.SolverGaveUp`: the system needs far more iterations than the earlier
+ones, the mark of an update that overshot; the converged tangent is not tried then, since on the
+74k leg it led to a Newton that gained a few per cent per iteration), or no convergence in
 ``max_iterations`` makes the load step fail; :func:`load_steps` then halves the load increment
 (cutback) and retries, up to ``max_cutbacks`` times, and finally raises
 :class:`~pixmuscle.errors.SolverError` naming the step, α and the last residual. It gives up before the last cutback when a smaller increment cannot help
@@ -52,7 +55,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import SolverError
+from ..errors import SolverError, SolverGaveUp
 from .config import NewtonConfig
 
 _LOG = logging.getLogger(__name__)
@@ -247,6 +250,9 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0, fallba
             try:
                 linsolver.prepare(system, tangent_state)
                 dd = linsolver.solve(state.r.reshape(-1), rtol=eta).reshape(state.d.shape)
+            except SolverGaveUp as exc:  # far harder than the systems before: the increment overshot
+                rows.append(NewtonRow(step, t, it, rn, rel, 0.0, 0.0))
+                return NewtonResult(state, False, it, rows, rel, f"linear solver gave up: {exc}")
             except SolverError as exc:
                 if k + 1 < len(tangents):  # the converged state's tangent is the fallback
                     _LOG.debug("load step %d, Newton iteration %d: %s; using the converged tangent", step, it, exc)
@@ -290,14 +296,15 @@ def _stagnated(res: NewtonResult, cfg: NewtonConfig) -> bool:
 def _cutback_cannot_help(res: NewtonResult, stalled: int) -> str:
     """Why a smaller load increment cannot rescue a failed attempt ("" when it may).
 
-    * the linear solver failed, or the residual was not finite, at the start state of the
-      attempt (a singular tangent or a bad state does not depend on the increment);
+    * the linear solver failed (other than by giving up on a hard system), or the residual was
+      not finite, at the start state of the attempt (a singular tangent or a bad state does not
+      depend on the increment);
     * two successive attempts, each with a halved increment, stagnated: Newton spent a third of its
       iterations or more without halving the residual, so the increment size is not what stops it
       (e.g. a prescribed stretch far beyond what the tissue model can follow).
     Quick failures (an inverted material point in the line search) always get their cutbacks.
     """
-    if res.iterations == 0 and (res.reason.startswith("linear solver") or res.reason == "non-finite residual"):
+    if res.iterations == 0 and (res.reason.startswith("linear solver:") or res.reason == "non-finite residual"):
         return f"{res.reason.split(':')[0]} at the start of the increment, which a smaller increment does not change"
     if stalled >= 2:
         return "two successive cutbacks stagnated (a third of the Newton iterations or more without halving the residual)"

@@ -610,14 +610,14 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
         if done:
             info["resumed_after_step"] = len(done) - 1
             mem = done[-1].solver  # the preconditioner or factors the interrupted solve held
-            if mem is not None and mem.backend == linsolver.name:
+            if mem is not None and mem.backend == linsolver.memory_tag:
                 t0 = time.perf_counter()
                 linsolver.recall(system, mem)
                 lin_time["setup_s"] += time.perf_counter() - t0
             elif mem is not None:
                 _LOG.warning("the checkpoint's linear-solver memory is of backend %s, this solve uses %s: it starts "
                              "afresh, and its forces agree with an uninterrupted run to the Newton tolerance only",
-                             mem.backend, linsolver.name)
+                             mem.backend, linsolver.memory_tag)
         _newton.load_steps(system, cfg.steps, *ramp, cfg.newton, _Timed(), on_step=on_step, resume=done or None)
     except SolverError as exc:
         status = f"failed: {exc}"

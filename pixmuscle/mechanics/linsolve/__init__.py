@@ -20,9 +20,9 @@ dataclass (:mod:`.base`); the package imports its modules when it loads, the con
     (docs/performance.md).
 ``cg_amg``
     Conjugate gradients on the matrix-free tangent (:mod:`.tangent`: always the exact current
-    tangent, never assembled), preconditioned by smoothed-aggregation AMG (:mod:`pyamg`, six
-    rigid-body modes as near-null space, first-level aggregates of 3×3×1 voxels) built from a
-    filtered positive stand-in of the tangent (blocks within ±2 voxels,
+    tangent, never assembled), preconditioned by algebraic multigrid (:mod:`.multigrid`: hypre
+    BoomerAMG through petsc4py where installed, else pyamg smoothed aggregation; option ``amg``)
+    built from a filtered positive stand-in of the tangent (blocks within ±2 voxels,
     :meth:`~pixmuscle.mechanics.solve.MechanicalSystem.preconditioner_matrix`). The hierarchy is
     rebuilt once the iterations lost to its staleness have cost as much as a rebuild
     (:class:`KrylovAMGSolver`). Newton passes an

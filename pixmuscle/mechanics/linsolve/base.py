@@ -84,6 +84,12 @@ class LinearSolver:
         """Solve K x = r; ``rtol`` is the accuracy the caller needs (iterative backends)."""
         raise NotImplementedError
 
+    @property
+    def memory_tag(self) -> str:
+        """What a checkpoint's solver memory names its solver by: a memory is recalled only by a
+        solver with the same tag (the backend's name; with its multigrid for the AMG backends)."""
+        return self.name
+
     def statistics(self) -> dict:
         """Totals of the whole solve for the results' ``info`` (merged as they are): the backend's
         name under ``linear_solver`` and whatever counts the backend keeps."""
@@ -120,8 +126,8 @@ class SolverMemory:
         The backend's decision counters (e.g. the reference rate and the extra iterations of the
         AMG rebuild rule); NaN for "not set".
     backend : str
-        Name of the backend that kept it (a resumed solve with another backend, e.g. ``auto``
-        on a machine without MKL, does not use it).
+        :attr:`LinearSolver.memory_tag` of the solver that kept it (a resumed solve with another, e.g.
+        ``auto`` on a machine without MKL or petsc4py, does not use it).
     """
 
     d: np.ndarray

@@ -232,7 +232,7 @@ class DirectSolver(LinearSolver):
         refactorises anyway)."""
         if self._factored_at is None or not self.policy.keep():  # none, or refactorised at the next system anyway
             return None
-        return SolverMemory(*self._factored_at, backend=self.name, counters={
+        return SolverMemory(*self._factored_at, backend=self.memory_tag, counters={
             "factors": float(_FACTORS.index(self.policy.factors)), "level": float(getattr(self.engine, "level", 0))})
 
     def recall(self, system, memory: SolverMemory) -> None:

@@ -80,7 +80,6 @@ from dataclasses import field
 import numpy as np
 import scipy.sparse as sp
 
-from ...errors import SolverError
 from ..tangent import MatrixFreeTangent
 from ..volumetric import shear_moduli
 from .base import BACKENDS
@@ -391,7 +390,7 @@ class MixedBlockSolver(KrylovAMGSolver):
                 stale = total
                 verdict.clear()  # the new preconditioner's iterations show their own lag
                 verdict.update(lag=lag, target=target)
-                z, its, status = fgmres(A, rhs, P, target, min(self._budget(rtol), self.maxiter - total),
+                z, its, status = fgmres(A, rhs, P, target, self._retry_budget(rtol, total),
                                         restart=self.restart, check=check)
                 total += its
             x = x + z[:n]
@@ -405,7 +404,7 @@ class MixedBlockSolver(KrylovAMGSolver):
         self.info["krylov_iterations"] += total
         self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
         if status != "converged":
-            raise SolverError(self._failure("FGMRES", status, total, rtol))
+            raise self._fail("FGMRES", status, total, rtol)
         self._account(total - stale, rtol)  # the iterations of the preconditioner in use now
         return x
 
