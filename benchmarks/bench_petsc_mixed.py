@@ -67,7 +67,11 @@ def main() -> None:
     rank, size = PETSc.COMM_WORLD.getRank(), PETSc.COMM_WORLD.getSize()
     command = " ".join(([f"mpiexec -n {size}"] if size > 1 else []) + [".venv/bin/python benchmarks/bench_petsc_mixed.py"]
                        + [f"'{a}'" for a in sys.argv[1:]])
-    lines = [f"# petsc_mixed: first Newton system, {size} rank(s), petsc_options {options}", "", f"`{command}`", "",
+    from pixmuscle.mechanics.linsolve import multigrid
+
+    amg = "BoomerAMG" if multigrid.hypre_available() else "GAMG"
+    lines = [f"# petsc_mixed: first Newton system, {size} rank(s), multigrid {amg}, petsc_options {options}", "",
+             f"`{command}`", "",
              "| penalty | region solves | K × 1 | K × 10 |", "|---|---|---|---|"]
     for beta in (None, 3.0e4):
         for regions in (True, False):

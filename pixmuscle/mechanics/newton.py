@@ -381,8 +381,11 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
     conv = None  # last converged state: its tangent is the fallback of every increment
     # With a constant activation (displacement-driven loading) the tangent does not change with the load
     # factor, so the start of an increment is the linear extrapolation of the last converged increment
-    # (the fastest start there); with a changing activation that extrapolation lands where the new active
-    # stress makes the tangent indefinite, and the increment starts at the converged d instead.
+    # (the fastest start there). With a changing activation an increment starts at the converged d, or at
+    # that extrapolation where its residual is smaller: from the converged d the first update of a large
+    # activation increment can overshoot (on the 74k leg it raised the residual 20-fold into a system the
+    # linear solver gave up on), while the extrapolation can land where the new active stress makes the
+    # tangent indefinite (the clamped block), which the residual comparison and the fallback tangent catch.
     passive_ramp = alpha_from == alpha_to
     last = None  # (increment of d, increment of t) of the last converged increment
     if resume:
@@ -409,6 +412,10 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
                     res = newton(system, state, cfg, linsolver, step=k)
                 else:
                     state = system.evaluate(d, t_try, alpha_of(t_try))
+                    if last is not None:  # the extrapolated start where it is nearer equilibrium
+                        pred = _predict(system, d, last, t_try - t_done, t_try, alpha_of(t_try))
+                        if _norm(pred.r) < _norm(state.r):
+                            state = pred
                     res = newton(system, state, cfg, linsolver, step=k, fallback_tangent=conv)
             except SolverError as exc:  # inverted already at the start of the increment
                 res = NewtonResult(None, False, 0, [], np.inf, str(exc))

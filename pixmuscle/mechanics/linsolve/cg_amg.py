@@ -46,7 +46,7 @@ class CGAMGOptions(Iterative):
     """Options of ``solve.solver: {backend: cg_amg, …}``: tolerance, iterations, rebuild cost."""
 
     rebuild_cost: int = field(default=100, metadata={"range": (1, None), "doc": "what a build of the AMG hierarchy costs, in Krylov iterations: the hierarchy is rebuilt once the iterations beyond its rate right after the last build add up to this many (within a solve too). Counted in iterations, not seconds, so that a run repeats itself exactly"})
-    give_up: float = field(default=4.0, metadata={"gt": 0, "doc": "a solve with a hierarchy that has not yet converged a solve stops after give_up × (the last measured iterations per decade) × decades + rebuild_cost iterations: such a system is far harder than the earlier ones (an overshooting Newton update), and Newton does better to take the last converged state's tangent or a smaller load increment"})
+    give_up: float = field(default=4.0, metadata={"gt": 0, "doc": "a solve with a hierarchy that has not yet converged a solve stops after give_up × (the last measured iterations per decade) × decades + rebuild_cost iterations: such a system is far harder than the earlier ones (an overshooting Newton update), and Newton does better to cut the load increment back"})
     amg: str = field(default="auto", metadata={"choices": AMG_CHOICES, "doc": "the multigrid: `hypre` (BoomerAMG through petsc4py, compiled: on the 21k leg a 14× faster set-up and a 1.7× faster cycle than pyamg), `pyamg` (smoothed aggregation, always installed), `auto` (hypre where petsc4py with hypre is installed, else pyamg)"})
 
 
@@ -94,10 +94,11 @@ class KrylovAMGSolver(LinearSolver):
     its tangent and the solve started again. So the iterations lost to a stale preconditioner
     never exceed what a rebuild costs. A hierarchy that has not yet converged a solve (right
     after a build) gets ``give_up`` × the last measured rate × decades + ``rebuild_cost``
-    iterations, those spent before a mid-solve rebuild included; a system that needs more is far harder than the earlier ones (on the 74k leg:
-    the state after an overshooting first update of an activation step, where a fresh hierarchy
-    did not converge in 700 iterations), and the solve fails, so that Newton takes the last
-    converged state's tangent or cuts the load increment back instead of iterating for an hour.
+    iterations, those spent before a mid-solve rebuild included; a system that needs more is far
+    harder than the earlier ones (on the 74k leg: the state after an overshooting first update of
+    an activation step, where a fresh hierarchy did not converge in 700 iterations), and the solve
+    fails (:class:`~pixmuscle.errors.SolverGaveUp`), so that Newton cuts the load increment back
+    instead of iterating for an hour; the next system gets a new hierarchy.
     A build (filtered matrix, AMG set-up, and for ``mixed_amg`` the probed Schur diagonal) takes
     the time of ~130 FGMRES iterations of ``mixed_amg`` at both 21k and 74k nodes (60 s against
     0.47 s per iteration, 223 s against 1.7 s), hence the default of 100. The rule counts

@@ -277,6 +277,7 @@ class MixedBlockSolver(KrylovAMGSolver):
         self._regions = None
         self._press = None
         self._probe = None
+        self._mixed = None  # (mixed operator, preconditioner) of the prepared system
         self.info.update(region_nodes=0)
 
     def _stand_in(self):
@@ -316,6 +317,8 @@ class MixedBlockSolver(KrylovAMGSolver):
         return w * w * (1.0 / D + self.schur_scale / (mu * vp))
 
     def _build(self):
+        if self._mixed is not None:  # the last system's preconditioner holds the old hierarchy: let it go first
+            self._mixed[1].MA = None
         super()._build()
         vol = self._system.volumetric  # prepare() sets the system before any build
         if vol is None:

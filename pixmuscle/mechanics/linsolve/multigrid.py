@@ -41,7 +41,8 @@ import scipy.sparse as sp
 AMG_CHOICES = ("auto", "hypre", "pyamg")
 
 _PREFIX = "pixmuscleamg_"
-_BOOMERAMG = {"pc_hypre_boomeramg_nodal_coarsen": 6, "pc_hypre_boomeramg_strong_threshold": 0.5,
+#: PETSc options of the BoomerAMG cycle (names without the dash); ``petsc_mixed`` uses them too
+BOOMERAMG_OPTIONS = {"pc_hypre_boomeramg_nodal_coarsen": 6, "pc_hypre_boomeramg_strong_threshold": 0.5,
               "pc_hypre_boomeramg_coarsen_type": "HMIS", "pc_hypre_boomeramg_interp_type": "ext+i",
               "pc_hypre_boomeramg_P_max": 4, "pc_hypre_boomeramg_relax_type_all": "symmetric-SOR/Jacobi"}
 
@@ -133,7 +134,7 @@ class BoomerAMG:
         pc.setOperators(self._A)
         pc.setType("hypre")
         pc.setHYPREType("boomeramg")
-        set_options(_PREFIX, _BOOMERAMG, None)
+        set_options(_PREFIX, BOOMERAMG_OPTIONS, None)
         pc.setFromOptions()
         pc.setUp()
         self._pc = pc
