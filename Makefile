@@ -36,7 +36,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
 
 # the solver-scale records (locking, accuracy and time against voxel FE, Newton, Krylov iterations against
-# K/mu, patch-pressure stability and forces, the 74k sweep at the default tolerances); hours, not minutes
+# K/mu, patch-pressure stability and forces, the multigrids, the sweeps at the defaults up to 74k); hours, not minutes
 bench-scale: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[bench]"
 	$(BIN)/python benchmarks/bench_locking.py
@@ -56,7 +56,8 @@ bench-scale: $(STAMP)
 	$(BIN)/python benchmarks/bench_tolerance.py --size 20k --tols 1e-4
 	$(BIN)/python benchmarks/bench_petsc_mixed.py
 	$(BIN)/python benchmarks/bench_patch.py
-	$(BIN)/python benchmarks/bench_solve.py --append --cases 75k:auto
+	for s in 5k 20k 75k; do for a in pyamg hypre; do $(BIN)/python benchmarks/bench_solve.py --multigrid $$s --amg $$a || exit 1; done; done
+	$(BIN)/python benchmarks/bench_solve.py --append --cases 5k:auto 20k:auto 75k:auto
 
 # the paper's Examples 3 and 2 at the paper's resolution, each timed stage by stage (wall time, peak memory,
 # load average; per model nodes, Newton iterations, F_max: benchmarks/results/bench_examples.json) and the

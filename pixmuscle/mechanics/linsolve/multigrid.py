@@ -37,6 +37,9 @@ import functools
 import numpy as np
 import scipy.sparse as sp
 
+from ...errors import InputError
+from .petsc import INSTALL_HINT, set_options
+
 #: choices of the ``amg`` option of the iterative backends
 AMG_CHOICES = ("auto", "hypre", "pyamg")
 
@@ -69,9 +72,6 @@ def resolve(amg: str) -> str:
     if amg == "auto":
         return "hypre" if hypre_available() else "pyamg"
     if amg == "hypre" and not hypre_available():
-        from ...errors import InputError
-        from .petsc import INSTALL_HINT
-
         raise InputError(f"solve.solver.amg: hypre needs petsc4py built against a PETSc with hypre; {INSTALL_HINT}")
     return amg
 
@@ -120,8 +120,6 @@ class BoomerAMG:
 
     def __init__(self, K):
         from petsc4py import PETSc
-
-        from .petsc import set_options
 
         A = sp.csr_matrix(K)
         A.sort_indices()
