@@ -14,8 +14,9 @@ region solves), for 50 FGMRES iterations against 47 on the first Newton system o
 (docs/performance.md, "Multigrid: pyamg and BoomerAMG").
 
 BoomerAMG settings (hypre's names): HMIS coarsening of the nodal strength matrix (``nodal`` 6:
-the row-sum norm of each 3 × 3 block) with strength threshold 0.5 — the three displacement
-components of a node are coarsened together, as elasticity needs; extended+i interpolation with
+the strength between two nodes is taken from their whole 3 × 3 block, one of hypre's block
+measures) with strength threshold 0.5 — the three displacement components of a node are coarsened
+together, as elasticity needs; extended+i interpolation with
 at most 4 entries per row; symmetric hybrid SOR/Jacobi relaxation (symmetric, so the cycle is a
 fixed symmetric operator). Rigid-body interpolation (hypre's vector interpolation) gave no fewer
 iterations on the leg and a slower set-up, so it is off.
