@@ -182,7 +182,8 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
         "material_s_per_evaluation": round(info["material_s"] / max(info["n_evaluate"], 1), 3),
         "sweep_s": round(wall, 1),
         # every setting shipped: backend auto, default Newton tolerances and penalty
-        "defaults": backend == "auto" and newton_tol is None and eta_max is None and penalty is None,
+        "defaults": (backend == "auto" and newton_tol is None and eta_max is None and penalty is None
+                     and steps == 10 and alpha_to == 0.95),
         "force_z_max_N": [float(f) for f in res.force("z_max")],
         "peak_rss_GB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2),
     }
