@@ -11,7 +11,7 @@ its symmetric block Gauss–Seidel cycle is most of the cost of a Krylov iterati
 (classical coarsening on the nodal strength matrix, extended+i interpolation, compiled C) sets up
 the same 21,169-node stand-in in 1.1 s against ~15 s and cycles in 0.19 s against 0.33 s (with the
 region solves), for 50 FGMRES iterations against 47 on the first Newton system of the leg
-(docs/performance.md, "Multigrid: pyamg and BoomerAMG").
+(docs/performance.md, "Multigrid: BoomerAMG and pyamg").
 
 BoomerAMG settings (hypre's names): HMIS coarsening of the nodal strength matrix (``nodal`` 6:
 the strength between two nodes is taken from their whole 3 × 3 block, one of hypre's block

@@ -134,10 +134,10 @@ def region_options() -> dict:
     """:data:`REGION_OPTIONS` with BoomerAMG as the multigrid where PETSc has hypre."""
     if not multigrid.hypre_available():
         return REGION_OPTIONS
-    sub0 = {"fieldsplit_u_sub_0_pc_type": "hypre", "fieldsplit_u_sub_0_pc_hypre_type": "boomeramg",
+    # GAMG's options stay under the prefix (a hypre PC ignores them), so that petsc_options
+    # {fieldsplit_u_sub_0_pc_type: gamg} gets the tuned GAMG back
+    return {**REGION_OPTIONS, "fieldsplit_u_sub_0_pc_type": "hypre", "fieldsplit_u_sub_0_pc_hypre_type": "boomeramg",
             **{"fieldsplit_u_sub_0_" + k: v for k, v in multigrid.BOOMERAMG_OPTIONS.items()}}
-    return {**{k: v for k, v in REGION_OPTIONS.items() if not k.startswith(("fieldsplit_u_sub_0_pc_", "fieldsplit_u_sub_0_mg_"))},
-            **sub0}
 
 _PREFIX = "pixmuscle_mixed_"
 
