@@ -2,7 +2,10 @@
 step fails at the start of a load step, and that the sweep converges in ≤ 15 iterations per step
 without cutbacks (``benchmarks/bench_newton.py`` runs the benchmark-size block)."""
 
+import dataclasses
+
 import numpy as np
+import pytest
 import scipy.sparse.linalg as spla
 
 from pixmuscle.config import parse_section
@@ -88,7 +91,8 @@ def test_clamped_oblique_block_converges_in_15_iterations_per_step_without_cutba
 def test_a_linear_solve_that_gives_up_cuts_the_increment_back():
     """A linear solver that gives up (SolverGaveUp: a system far harder than the earlier ones, the
     mark of an overshooting update) fails the attempt at once: Newton does not try the converged
-    tangent, the increment is halved, and the step still reaches the force of a run without it."""
+    tangent, the increment is halved and held for the later steps (also after a resume), and the
+    ramp still reaches the state of a run without it."""
     from pixmuscle.errors import SolverGaveUp
     from pixmuscle.mechanics.linsolve import make_solver
     from pixmuscle.mechanics.newton import load_steps
@@ -120,4 +124,18 @@ def test_a_linear_solve_that_gives_up_cuts_the_increment_back():
     # the give-up (third system at t = 0.2) is followed by the first system of the halved increment
     # (t = 0.1), not by the converged state's tangent (t = 0)
     assert lin.prepared[:4] == [0.2, 0.2, 0.2, 0.1]
+    # the halved increment is held: every later step is reached in two increments of 0.1
+    starts = sorted({round(t, 12) for t in lin.prepared})
+    assert starts == [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]
+    assert [r.increment[1] for r in recs[1:]] == pytest.approx([0.1] * 5, abs=1e-12)
     assert np.allclose(recs[-1].state.d, plain[-1].state.d, atol=1e-6 * np.abs(plain[-1].state.d).max())
+    # a ramp resumed after the cutback holds the halved increment too, and repeats the run exactly
+    again = GivesUpOnce()
+    again.calls = 10  # no further give-up
+    resumed = load_steps(system, 5, 0.0, 0.95, cfg.newton, again, resume=recs[:3])
+    assert sorted({round(t, 12) for t in again.prepared}) == [0.5, 0.6, 0.7, 0.8, 0.9, 1.0]
+    assert np.allclose(resumed[-1].state.d, recs[-1].state.d, rtol=0, atol=1e-10 * np.abs(recs[-1].state.d).max())
+    # with hold_cutback: false every step starts again at its full increment
+    free = GivesUpOnce()
+    load_steps(system, 5, 0.0, 0.95, dataclasses.replace(cfg.newton, hold_cutback=False), free)
+    assert sorted({round(t, 12) for t in free.prepared}) == [0.1, 0.2, 0.4, 0.6, 0.8, 1.0]

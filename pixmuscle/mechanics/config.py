@@ -159,7 +159,8 @@ class NewtonConfig:
     residual_tol: float = field(default=1.0e-4, metadata={"gt": 0, "doc": "‖r‖ ≤ tol · max(‖f_int‖, ‖f_penalty‖)"})
     energy_tol: float = field(default=1.0e-6, metadata={"gt": 0, "doc": "|Δd·r| ≤ tol · (largest |Δd·r| of the step)"})
     forcing_max: float = field(default=1.0e-2, metadata={"gt": 0, "range": (None, 1.0), "doc": "largest relative tolerance of an iterative linear solve per Newton iteration (inexact Newton, Eisenstat–Walker η_max; direct solves are exact)"})
-    max_cutbacks: int = field(default=6, metadata={"range": (0, None), "doc": "halvings of the load increment before giving up"})
+    max_cutbacks: int = field(default=6, metadata={"range": (0, None), "doc": "halvings of the load increment before giving up (with hold_cutback, counted from the nominal increment 1/steps)"})
+    hold_cutback: bool = field(default=True, metadata={"doc": "after a cutback the halved load increment is kept for the rest of the ramp, the reported load steps unchanged (an increment that overshot once tends to overshoot again: on the 74k leg every full activation increment did, and each cost a solve given up on); false: every load step starts again at its full increment"})
     line_search: bool = True
     max_line_search: int = field(default=8, metadata={"range": (0, None)})
 

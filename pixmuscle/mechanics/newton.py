@@ -41,7 +41,8 @@ up (:class:`~pixmuscle.errors.SolverGaveUp`: the system needs far more iteration
 ones, the mark of an update that overshot; the converged tangent is not tried then, since on the
 74k leg it led to a Newton that gained a few per cent per iteration), or no convergence in
 ``max_iterations`` makes the load step fail; :func:`load_steps` then halves the load increment
-(cutback) and retries, up to ``max_cutbacks`` times, and finally raises
+(cutback), keeps it halved for the rest of the ramp (``hold_cutback``), and retries, down to
+``max_cutbacks`` halvings of the nominal increment, and finally raises
 :class:`~pixmuscle.errors.SolverError` naming the step, α and the last residual. It gives up before the last cutback when a smaller increment cannot help
 (see :func:`_cutback_cannot_help`: a failed linear solve or a non-finite residual at the start of
 an increment, or two successive attempts that stagnated).
@@ -288,6 +289,12 @@ def _predict(system, d, last, dt, t, alpha):
     return system.evaluate(d, t, alpha)
 
 
+def held_halvings(dt: float, n_steps: int) -> int:
+    """Halvings of the nominal increment 1/``n_steps`` that give the converged increment ``dt`` (the
+    increment a resumed ramp holds after a cutback, as the uninterrupted one did)."""
+    return max(0, int(round(np.log2(1.0 / (n_steps * dt))))) if dt > 0 else 0
+
+
 def _stagnated(res: NewtonResult, cfg: NewtonConfig) -> bool:
     """A failed attempt that spent a third of ``max_iterations`` or more without halving its residual."""
     rel = [r.relative_residual for r in res.rows if np.isfinite(r.relative_residual)]
@@ -348,8 +355,11 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
 
     Step k (k = 0..n_steps) reaches load factor t_k = k / n_steps and activation
     α_k = α_from + t_k (α_to − α_from). Step 0 solves the initial state (trivial unless α_from > 0).
-    A step whose Newton iteration fails is retried with the increment halved (sub-steps), up to
-    ``cfg.max_cutbacks`` halvings per step.
+    A step whose Newton iteration fails is retried with the increment halved (sub-steps), down to
+    ``cfg.max_cutbacks`` halvings of the nominal increment 1/``n_steps``. With ``cfg.hold_cutback``
+    (the default) the halved increment is kept for the later steps too, so a ramp whose full
+    increment overshoots pays for one failed attempt, not one per step; the converged states are
+    still reported at t_k.
 
     Parameters
     ----------
@@ -388,6 +398,7 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
     # makes the tangent indefinite (the clamped block), which the fallback tangent then catches.
     passive_ramp = alpha_from == alpha_to
     last = None  # (increment of d, increment of t) of the last converged increment
+    level = 0  # halvings of the nominal increment in force (held after a cutback with cfg.hold_cutback)
     if resume:
         records = list(resume)
         prev = records[-1]
@@ -395,10 +406,14 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
         conv = prev.state if hasattr(prev.state, "r") else None
         if conv is None and not passive_ramp:
             conv = system.evaluate(d, t_done, prev.state.alpha)
+        if cfg.hold_cutback and last is not None:
+            level = held_halvings(last[1], n_steps)
     for k in range(len(records), n_steps + 1):
         t_target = k / n_steps
-        dt = t_target - t_done
-        cut = 0
+        if not cfg.hold_cutback:
+            level = 0
+        dt = (t_target - t_done) / 2.0**level
+        cut = subs = 0
         stalled = 0  # successive failed attempts in which Newton stagnated (see _stagnated)
         rows: list = []
         iters = 0
@@ -424,6 +439,7 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
             if res.converged:
                 if t_try > t_done:
                     last = (res.state.d - d, t_try - t_done)
+                    subs += 1
                 d = res.state.d
                 conv = res.state
                 t_done = t_try
@@ -434,16 +450,19 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
             hopeless = _cutback_cannot_help(res, stalled)
             if not hopeless:
                 _LOG.info("load step %d: Newton failed at load factor %.4g (%s); cutting back", k, t_try, res.reason)
-            if cut > cfg.max_cutbacks or dt <= 0 or hopeless:
+            if level + 1 > cfg.max_cutbacks or dt <= 0 or hopeless:
                 exc = SolverError(
-                    f"load step {k} of {n_steps} (α = {alpha_of(t_try):.4g}, load factor {t_try:.4g}) did not converge "
-                    f"after {cut - 1} cutbacks: {res.reason}; last relative residual {res.relative_residual:.3g}"
+                    f"load step {k} of {n_steps} (α = {alpha_of(t_try):.4g}, load factor {t_try:.4g}, increment {dt:.3g}) did "
+                    f"not converge after {cut - 1} cutbacks in this step: {res.reason}; last relative residual {res.relative_residual:.3g}"
                     + (f"; stopped early: {hopeless}" if hopeless else "")
                 )
                 exc.records = records
                 exc.rows = rows
                 raise exc
             dt /= 2.0
+            level += 1
+        if subs > 1:
+            _LOG.info("load step %d: %d increments of load factor (the last %.4g)", k, subs, last[1])
         rec = StepRecord(step=k, t=t_target, alpha=alpha_of(t_target), state=state, iterations=iters, cutbacks=cut, rows=rows,
                          increment=last)
         records.append(rec)
