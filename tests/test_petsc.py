@@ -158,10 +158,10 @@ def _first_newton_iterations(backend, bulk_scale, options=None, beta=3.0e4, **so
 
 
 def test_mixed_field_split_iterations_do_not_grow_with_the_bulk_modulus():
-    """PETSc FGMRES with the Schur field split (BoomerAMG, or GAMG without hypre, on K_d; the scaled
-    pressure mass for the Schur complement; region solves on, the default), refinement passes for
-    the condensed residual included: ≤ 1.5× the iterations when every bulk modulus is ×10 (measured
-    45 and 51 with BoomerAMG, 82 and 75 with GAMG; 96 and 92 with GAMG without the region solves), while the condensed GMRES + GAMG needs more than
+    """PETSc FGMRES with the Schur field split (BoomerAMG, or GAMG without hypre, on K_d; the probed
+    Schur diagonal; region solves on, the defaults), refinement passes for the condensed residual
+    included: ≤ 1.5× the iterations when every bulk modulus is ×10 (measured 35 and 40 with
+    BoomerAMG; with the pressure mass 45 and 51, 82 and 75 with GAMG), while the condensed GMRES + GAMG needs more than
     1.5× as many or fails (measured 680 at K × 1, breakdown at K × 10)."""
     if not petsc.available():
         pytest.skip(f"petsc4py not importable ({petsc.INSTALL_HINT})")
@@ -178,9 +178,9 @@ def test_mixed_field_split_iterations_do_not_grow_with_the_bulk_modulus():
 def test_mixed_region_solves_keep_iterations_flat_in_the_bulk_modulus_with_the_default_penalty():
     """With the default penalty number (β ∝ the largest modulus, so ∝ K) the penalty rows put a
     K-scaled term into K_d. With the exact solves on the boundary-condition regions after the
-    multigrid (the default) the iterations stay ≤ 1.5× from K × 1 to K × 10 (measured 62 and 70
-    with BoomerAMG, 96 and 102 with GAMG); GAMG alone grows by more than 1.5× (measured 371 and
-    1,853)."""
+    multigrid (the default) the iterations stay ≤ 1.5× from K × 1 to K × 10 (measured 47 and 53
+    with BoomerAMG and the probed Schur diagonal; 96 and 102 with GAMG and the pressure mass);
+    the multigrid alone grows by more than 1.5× (measured 362 and 1,862)."""
     if not petsc.available():
         pytest.skip(f"petsc4py not importable ({petsc.INSTALL_HINT})")
     its = {}
@@ -191,6 +191,22 @@ def test_mixed_region_solves_keep_iterations_flat_in_the_bulk_modulus_with_the_d
     assert its[True, 10.0] <= 1.5 * its[True, 1.0]
     assert its[True, 1.0] < its[False, 1.0]
     assert its[False, 10.0] > 1.5 * its[False, 1.0]
+
+
+def test_mixed_probed_schur_diagonal_takes_fewer_iterations_than_the_pressure_mass():
+    """``schur: probed`` (the default, as in ``mixed_amg``): the diagonal of w² G M Gᵀ probed with the
+    displacement split's own preconditioner M gives the Schur split a better diagonal than the
+    scaled pressure mass, so FGMRES needs fewer iterations at the tissues' K/μ and at K × 10 (default
+    penalty, region solves), and the solution is still the direct one."""
+    if not petsc.available():
+        pytest.skip(f"petsc4py not importable ({petsc.INSTALL_HINT})")
+    its = {}
+    for schur in ("probed", "mass"):
+        for scale in (1.0, 10.0):
+            its[schur, scale], err = _first_newton_iterations("petsc_mixed", scale, beta=None, schur=schur)
+            assert its[schur, scale] is not None and err <= 1e-6
+    assert its["probed", 1.0] < its["mass", 1.0] and its["probed", 10.0] < its["mass", 10.0]
+    assert its["probed", 10.0] <= 1.5 * its["probed", 1.0]
 
 
 def test_mpiexec_failure_on_one_rank_ends_all_ranks(serial, tmp_path):

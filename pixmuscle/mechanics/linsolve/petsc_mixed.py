@@ -30,11 +30,14 @@ preconditioner that need not be fixed) with ``PCFIELDSPLIT``: ``pc_fieldsplit_ty
 displacement split (options prefix ``fieldsplit_u_``, ``ksp_type preonly``) is M_A, one GAMG cycle on
 K_d with the rigid-body modes as near-null space followed by exact solves of K_d on the node regions
 of the boundary conditions (``region_solves``, below); the Schur split (``fieldsplit_p_``) is
-Jacobi on the user matrix −Ŝ (``pc_fieldsplit_schur_precondition user``), the scaled pressure mass
+Jacobi on the user matrix −Ŝ (``pc_fieldsplit_schur_precondition user``),
 
-    Ŝ = w² (D⁻¹ + c / (μ_p V_p)),    c = ``schur_scale``
+    Ŝ = w² (D⁻¹ + diag(G M_A Gᵀ))      (``schur: probed``, the default, as in ``mixed_amg``)
+    Ŝ = w² (D⁻¹ + c / (μ_p V_p)),    c = ``schur_scale``      (``schur: mass``).
 
-(``schur: mass`` of ``mixed_amg``).
+The probed diagonal (:func:`.mixed.probed_schur_diagonal`'s colours and signs) applies the
+displacement split's own preconditioner outside the KSP, probe_spacing³ times (27) per Newton
+system, with PETSc's distributed w G and w Gᵀ, so one rank and several probe the same diagonal.
 
 Region solves. The penalty rows of the boundary conditions, β Ψ(x_c)ᵀ w_c Ψ(x_c), couple every node
 in the support of a constraint point; with the default penalty number β scales with the largest
@@ -61,13 +64,9 @@ options (the split's KSP and the Schur complement's inner KSP are one object) wo
 A ``petsc_options`` entry for ``fieldsplit_u_pc_type`` (e.g. ``hypre``, ``lu``) replaces the whole
 composite; ``fieldsplit_u_sub_0_pc_type: gamg`` keeps the region solves after a GAMG cycle;
 ``region_solves: false`` gives GAMG alone, its options under ``fieldsplit_u_`` (:data:`DEFAULT_OPTIONS`).
-On the 224-node clamped body of the tests BoomerAMG + region solves needs 62 and 70 FGMRES
-iterations at K × 1 and × 10 where GAMG + region solves needs 96 and 102 (docs/petsc.md).
-
-``mixed_amg``'s default Schur approximation, the diagonal of G M_A Gᵀ probed with 27
-applications of M_A at each preconditioner build (:func:`.mixed.probed_schur_diagonal`), would need
-the field split's displacement preconditioner applied outside the KSP; it is not done here
-(serially it takes FGMRES from 79–131 to 31–42 iterations on the 5k leg).
+On the 224-node clamped body of the tests BoomerAMG + region solves needs 47 and 53 FGMRES
+iterations at K × 1 and × 10 with the probed Schur diagonal (62 and 70 with the pressure mass),
+where GAMG + region solves needs 96 and 102 with the mass (docs/petsc.md).
 
 Stopping. Newton asks for a relative residual of the condensed system. The condensed residual of a
 mixed iterate, r − K Δd = r₁ + Gᵀ (D/w) r₂, can exceed the mixed one by up to K/μ (the pressure rows
@@ -150,6 +149,8 @@ class PETScMixedOptions(PETScOptions):
     """Options of ``solve.solver: {backend: petsc_mixed, …}``."""
 
     schur_scale: float = field(default=0.5, metadata={"gt": 0, "doc": "c of the diagonal Schur complement w²(c/(μ_p V_p) + 1/(V_p K̄_p)): the typical eigenvalue of G K_d⁻¹ Gᵀ against the pressure mass"})
+    schur: str = field(default="probed", metadata={"choices": ("probed", "mass"), "doc": "diagonal Schur approximation: `probed`, the diagonal of G M Gᵀ (M the displacement split's preconditioner) by probing with probe_spacing³ colours of the patch grid at each Newton system (as mixed_amg); `mass`, c/(μ_p V_p) with c = schur_scale"})
+    probe_spacing: int = field(default=3, metadata={"range": (2, None), "doc": "with schur: probed, same-colour patches of the probe are this many patch boxes apart (spacing³ colours, as many applications of the displacement preconditioner per Newton system)"})
     region_solves: bool = field(default=True, metadata={"doc": "after each GAMG cycle on the displacement block, solve it exactly on the node regions of the boundary conditions (PCCOMPOSITE multiplicative of GAMG and PCASM, one local subdomain per region on each rank: the region's owned rows), where the penalty couplings, K-scaled with the default penalty number, live"})
 
 
@@ -171,7 +172,11 @@ class PETScMixedSolver(PETScSolver):
         PETSc options (names without the dash), over :data:`DEFAULT_OPTIONS` for the mixed solve
         and over :data:`.petsc.DEFAULT_OPTIONS` for the condensed one (no projected energy).
     schur_scale : float
-        c in Ŝ = w² (D⁻¹ + c/(μ_p V_p)).
+        With ``schur="mass"``: c in Ŝ = w² (D⁻¹ + c/(μ_p V_p)).
+    schur : {"probed", "mass"}
+        Diagonal Schur approximation (module docstring).
+    probe_spacing : int
+        With ``schur="probed"``: colour spacing of the probe on the patch grid.
     region_solves : bool
         Displacement split: BoomerAMG (GAMG without hypre) then exact (LU) solves on the
         boundary-condition regions (:func:`region_options`); without, GAMG alone (:data:`DEFAULT_OPTIONS`).
@@ -180,10 +185,13 @@ class PETScMixedSolver(PETScSolver):
     name = "petsc_mixed"
 
     def __init__(self, X, ijk, rtol: float = 1e-10, maxiter: int = 2000, options: dict | None = None,
-                 schur_scale: float = 0.5, region_solves: bool = True):
+                 schur_scale: float = 0.5, region_solves: bool = True, schur: str = "probed", probe_spacing: int = 3):
         super().__init__(X, ijk, rtol=rtol, maxiter=maxiter, options=options)
         self.mixed_options = set_options(_PREFIX, region_options() if region_solves else DEFAULT_OPTIONS, options)
         self.schur_scale = float(schur_scale)
+        self.schur = schur
+        self.probe_spacing = int(probe_spacing)
+        self.ijk = np.asarray(ijk)
         self.region_solves = bool(region_solves)
         self._mixed = None
         self._press = None
@@ -196,7 +204,8 @@ class PETScMixedSolver(PETScSolver):
         if ijk is None:
             raise ValueError("petsc_mixed needs the voxel indices ijk of the nodes")
         return cls(X, ijk, rtol=opts.rtol, maxiter=opts.maxiter, options=dict(opts.petsc_options),
-                   schur_scale=opts.schur_scale, region_solves=opts.region_solves)
+                   schur_scale=opts.schur_scale, region_solves=opts.region_solves, schur=opts.schur,
+                   probe_spacing=opts.probe_spacing)
 
     def _pressure_partition(self, vol):
         """PETSc order of the pressure unknowns: the free patches by owning rank (the lowest rank
@@ -271,6 +280,8 @@ class PETScMixedSolver(PETScSolver):
         pc.setFieldSplitSchurPreType(PETSc.PC.SchurPreType.USER, S)
         ksp.setFromOptions()
         self._set_region_subdomains(system, pc)
+        if self.schur == "probed":
+            self._probe_schur(system, vol, pc, A01, A10, S, w * w / D, mine)
         b = PETSc.Vec().createMPI((n_loc + m_loc, PETSc.DECIDE), comm=self.comm)  # per rank: [u; p] owned
         z = b.duplicate()
         start = b.getOwnershipRange()[0]
@@ -315,6 +326,41 @@ class PETScMixedSolver(PETScSolver):
         subdomains = [PETSc.IS().createGeneral(r, comm=PETSc.COMM_SELF)
                       for r in self._regions or [np.empty(0, PETSc.IntType)]]
         asm.setASMLocalSubdomains(len(subdomains), subdomains)
+
+    def _probe_schur(self, system, vol, pc, A01, A10, S, c22: np.ndarray, mine: np.ndarray) -> None:
+        """Set −Ŝ = −(w² D⁻¹ + diag(w² G M Gᵀ)) in ``S``, the diagonal probed as in
+        :func:`.mixed.probed_schur_diagonal` (same colours and signs, so one rank and several give
+        the same numbers) with M the displacement split's preconditioner, applied outside the KSP.
+        ``c22`` (owned patches) is w² D⁻¹."""
+        PETSc = self.PETSc
+        pc.setUp()
+        upc = pc.getFieldSplitSubKSP()[0].getPC()
+        upc.setUp()
+        box = np.zeros((vol.n_patches, 3), np.int64)
+        box[vol.patch_of] = np.asarray(self.ijk) // np.asarray(vol.patch)
+        spacing = self.probe_spacing
+        colour_all = ((box % spacing) * np.array([spacing * spacing, spacing, 1])).sum(axis=1)
+        free = np.flatnonzero(~vol.held)  # the signs of mixed_amg's probe: drawn over the free patches in order
+        sign_all = np.zeros(vol.n_patches)
+        sign_all[free] = np.where(np.random.default_rng(0).random(free.size) < 0.5, -1.0, 1.0)
+        colour, sign = colour_all[mine], sign_all[mine]
+        q, g = A10.createVecLeft(), A10.createVecLeft()
+        u, y = A01.createVecLeft(), A01.createVecLeft()
+        out = np.zeros(mine.size)
+        for c in range(spacing ** 3):  # every rank takes every colour: the products are collective
+            sel = colour == c
+            q.setArray(np.where(sel, sign, 0.0))
+            A01.mult(q, u)
+            upc.apply(u, y)
+            A10.mult(y, g)
+            out[sel] = sign[sel] * g.getArray()[sel]
+        g.setArray(out)
+        out = np.maximum(np.abs(out), 1e-12 * g.norm(PETSc.NormType.INFINITY))  # the largest over all ranks
+        diag = S.createVecLeft()
+        diag.setArray(-(c22 + out))
+        S.setDiagonal(diag)
+        for v in (q, g, u, y, diag):
+            v.destroy()
 
     def _diagonal(self, values: np.ndarray, start: int, size: int):
         """A distributed diagonal AIJ matrix with the owned ``values`` from global row ``start``."""
