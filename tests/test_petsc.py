@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 import yaml
 
 from pixmuscle.config import parse_section
@@ -20,7 +21,7 @@ from pixmuscle.mechanics.config import SolveConfig
 from pixmuscle.mechanics.linsolve import petsc
 from pixmuscle.mechanics.linsolve.rows import RowAssembler
 from pixmuscle.mechanics.solve import build_system, solve
-from pixmuscle.verify.mechanics import mask_model
+from pixmuscle.verify.mechanics import _cfg, mask_model
 
 BCS = [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]}]
 # a tight Newton tolerance: the tests compare linear solvers, whose answers then agree to 1e-6 in force
@@ -207,6 +208,36 @@ def test_mixed_probed_schur_diagonal_takes_fewer_iterations_than_the_pressure_ma
             assert its[schur, scale] is not None and err <= 1e-6
     assert its["probed", 1.0] < its["mass", 1.0] and its["probed", 10.0] < its["mass", 10.0]
     assert its["probed", 10.0] <= 1.5 * its["probed", 1.0]
+
+
+def test_mixed_probed_schur_diagonal_is_exact_with_an_exact_displacement_solve():
+    """With the displacement split solved exactly (``fieldsplit_u_pc_type: lu``) and every patch
+    its own colour (8 patches, the 8 parity colours), the probed −Ŝ that PETSc's Schur split gets
+    is −(w² D⁻¹ + w² diag(G K_d⁻¹ Gᵀ)) computed densely from the same blocks."""
+    if not petsc.available():
+        pytest.skip(f"petsc4py not importable ({petsc.INSTALL_HINT})")
+    from test_mixed_solver import CLAMPED
+
+    from pixmuscle.mechanics.linsolve import make_solver
+
+    model = mask_model(np.ones((4, 4, 6), bool), (0.15, 0.15, 0.4), tissue=1,
+                       fiber=np.array([np.sin(0.4), 0.0, np.cos(0.4)]))
+    cfg = _cfg(boundary_conditions=CLAMPED, volumetric={"method": "projected", "patch": [2, 2, 3], "held": "patch"})
+    system = build_system(model, cfg)[0]
+    assert system.volumetric.n_patches == 8
+    state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.5, 0.6)
+    solver = make_solver("petsc_mixed", model.X, ijk=model.ijk, probe_spacing=2,
+                         petsc_options={"fieldsplit_u_pc_type": "lu"})
+    solver.prepare(system, state)
+    A00, _, A10, A11, S = solver._mixed["blocks"]
+
+    def dense(M):
+        indptr, indices, data = M.getValuesCSR()
+        return sp.csr_matrix((data, indices, indptr), shape=M.getSize()).toarray()
+
+    Kd, wG, c22 = dense(A00), dense(A10), -np.diag(dense(A11))
+    exact = c22 + np.diag(wG @ np.linalg.solve(Kd, wG.T))
+    assert np.allclose(-np.diag(dense(S)), exact, rtol=1e-8)
 
 
 def test_mpiexec_failure_on_one_rank_ends_all_ranks(serial, tmp_path):

@@ -168,14 +168,21 @@ def probed_schur_diagonal(G: PatchDivergence, M, box: np.ndarray, spacing: int =
     C. Bekas, E. Kokiopoulou, Y. Saad, "An estimator for the diagonal of a matrix", Appl. Numer.
     Math. 57(11–12), 1214–1229, 2007.
     """
-    colour = ((box % spacing) * np.array([spacing * spacing, spacing, 1])).sum(axis=1)
-    sign = np.where(np.random.default_rng(0).random(box.shape[0]) < 0.5, -1.0, 1.0)
+    colour, sign = probe_colours(box, spacing)
     out = np.zeros(box.shape[0])
     for c in np.unique(colour):
         sel = colour == c
         out[sel] = sign[sel] * (G @ (M @ G.T(np.where(sel, sign, 0.0))))[sel]
     tiny = 1e-12 * float(np.max(np.abs(out))) if out.size else 0.0
     return np.maximum(np.abs(out), tiny)
+
+
+def probe_colours(box: np.ndarray, spacing: int) -> tuple[np.ndarray, np.ndarray]:
+    """Colour (0 … spacing³ − 1) and fixed random sign (±1, seed 0) of each patch for
+    :func:`probed_schur_diagonal`, from the patches' box indices ``box`` (N_p, 3) on the patch grid."""
+    colour = ((box % spacing) * np.array([spacing * spacing, spacing, 1])).sum(axis=1)
+    sign = np.where(np.random.default_rng(0).random(box.shape[0]) < 0.5, -1.0, 1.0)
+    return colour, sign
 
 
 def pressure_scale(mu: np.ndarray, vp: np.ndarray, spacing) -> float:

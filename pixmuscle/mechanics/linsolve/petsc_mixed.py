@@ -102,7 +102,7 @@ from ...errors import SolverError
 from ..volumetric import shear_moduli
 from . import multigrid
 from .base import BACKENDS
-from .mixed import PatchDivergence, pressure_scale, refinement_target
+from .mixed import PatchDivergence, pressure_scale, probe_colours, refinement_target
 from .petsc import DEFAULT_OPTIONS as CONDENSED_OPTIONS
 from .petsc import PETScOptions, PETScSolver, set_options
 from .subdomains import constraint_regions
@@ -338,16 +338,14 @@ class PETScMixedSolver(PETScSolver):
         upc.setUp()
         box = np.zeros((vol.n_patches, 3), np.int64)
         box[vol.patch_of] = np.asarray(self.ijk) // np.asarray(vol.patch)
-        spacing = self.probe_spacing
-        colour_all = ((box % spacing) * np.array([spacing * spacing, spacing, 1])).sum(axis=1)
-        free = np.flatnonzero(~vol.held)  # the signs of mixed_amg's probe: drawn over the free patches in order
-        sign_all = np.zeros(vol.n_patches)
-        sign_all[free] = np.where(np.random.default_rng(0).random(free.size) < 0.5, -1.0, 1.0)
-        colour, sign = colour_all[mine], sign_all[mine]
+        free = np.flatnonzero(~vol.held)  # mixed_amg's probe colours the free patches, in order
+        colour, sign = np.zeros(vol.n_patches, np.int64), np.zeros(vol.n_patches)
+        colour[free], sign[free] = probe_colours(box[free], self.probe_spacing)
+        colour, sign = colour[mine], sign[mine]
         q, g = A10.createVecLeft(), A10.createVecLeft()
         u, y = A01.createVecLeft(), A01.createVecLeft()
         out = np.zeros(mine.size)
-        for c in range(spacing ** 3):  # every rank takes every colour: the products are collective
+        for c in range(self.probe_spacing ** 3):  # every rank takes every colour: the products are collective
             sel = colour == c
             q.setArray(np.where(sel, sign, 0.0))
             A01.mult(q, u)
