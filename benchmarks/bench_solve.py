@@ -434,6 +434,10 @@ def multigrid(size: str, penalty: float | None, amg: str) -> dict:
     state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.095)
     solver = make_solver("mixed_amg", model.X, ijk=model.ijk, amg=amg)
     out = {"size": size, "amg": amg, "nodes": model.n_nodes}
+    if amg == "hypre":
+        from pixmuscle.mechanics.linsolve.multigrid import BOOMERAMG_OPTIONS
+
+        out["relax"] = {k.rsplit("_", 1)[-1]: v for k, v in BOOMERAMG_OPTIONS.items() if "relax_type" in k}
     t = time.perf_counter()
     solver.prepare(system, state)
     out["setup_s"] = round(time.perf_counter() - t, 1)
@@ -694,9 +698,9 @@ def main(argv=None):
     OUT.mkdir(parents=True, exist_ok=True)
     cases = []
     if args.append and (OUT / "bench_solve.json").exists():  # keep earlier cases not measured again now
-        again = set(args.cases)
+        again = {(case, args.steps) for case in args.cases}  # a case at another number of steps is another record
         cases = [c for c in json.loads((OUT / "bench_solve.json").read_text())["cases"]
-                 if c.get("case", f"{c.get('size')}:{c.get('backend')}") not in again]
+                 if (c.get("case", f"{c.get('size')}:{c.get('backend')}"), c.get("steps", 10)) not in again]
     for case in args.cases:
         print(f"== {case}", flush=True)
         try:

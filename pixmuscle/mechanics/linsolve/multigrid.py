@@ -17,9 +17,16 @@ BoomerAMG settings (hypre's names): HMIS coarsening of the nodal strength matrix
 the strength between two nodes is taken from their whole 3 × 3 block, one of hypre's block
 measures) with strength threshold 0.5 — the three displacement components of a node are coarsened
 together, as elasticity needs; extended+i interpolation with
-at most 4 entries per row; symmetric hybrid SOR/Jacobi relaxation (symmetric, so the cycle is a
-fixed symmetric operator). Rigid-body interpolation (hypre's vector interpolation) gave no fewer
-iterations on the leg and a slower set-up, so it is off.
+at most 4 entries per row; one forward hybrid Gauss–Seidel/Jacobi sweep before the coarse-grid
+correction and one backward sweep after it, Gaussian elimination on the coarsest level, so the
+cycle is a fixed symmetric operator (CG in ``cg_amg`` needs that). Operator complexity is ~1.1,
+so the fine level's sweeps are the cycle's cost: a symmetric sweep on both sides (hypre's
+symmetric-SOR/Jacobi) costs twice as much per cycle for the same or a few per cent fewer
+iterations — on the first Newton system of the leg 39 and 50 FGMRES iterations at 5k and 21k
+nodes against 39 and 54 with the one-way sweeps, but 0.050 and 0.200 s against 0.039 and 0.136 s
+per cycle with the region solves, 15 % less solve time and 24 % less set-up at 21k
+(docs/performance.md, "Multigrid: BoomerAMG and pyamg"). Rigid-body interpolation (hypre's
+vector interpolation) gave no fewer iterations on the leg and a slower set-up, so it is off.
 
 References
 ----------
@@ -48,7 +55,9 @@ _PREFIX = "pixmuscleamg_"
 #: PETSc options of the BoomerAMG cycle (names without the dash); ``petsc_mixed`` uses them too
 BOOMERAMG_OPTIONS = {"pc_hypre_boomeramg_nodal_coarsen": 6, "pc_hypre_boomeramg_strong_threshold": 0.5,
               "pc_hypre_boomeramg_coarsen_type": "HMIS", "pc_hypre_boomeramg_interp_type": "ext+i",
-              "pc_hypre_boomeramg_P_max": 4, "pc_hypre_boomeramg_relax_type_all": "symmetric-SOR/Jacobi"}
+              "pc_hypre_boomeramg_P_max": 4, "pc_hypre_boomeramg_relax_type_down": "SOR/Jacobi",
+              "pc_hypre_boomeramg_relax_type_up": "backward-SOR/Jacobi",
+              "pc_hypre_boomeramg_relax_type_coarse": "Gaussian-elimination"}
 
 
 @functools.cache
