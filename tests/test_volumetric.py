@@ -54,6 +54,28 @@ def test_projected_residual_and_tangent_are_derivatives(patch):
     assert np.linalg.norm(system.stiffness(state) @ v.ravel() - Kv) < 1e-12 * np.linalg.norm(Kv)
 
 
+def test_linearised_pressure_is_the_first_order_pressure_of_the_update():
+    """``linearised_pressure(state, v)`` = K̄ (θ − 1) + K̄ (∂θ/∂d) v: its slope in v against central
+    differences of the patch pressure K̄ (θ(d + εv) − 1), and exact at v = 0; a state evaluated with
+    the pressure of d itself has the plain state's tangent, and with another pressure the same
+    residual."""
+    model = _body()
+    system = _system(model, {"method": "projected", "patch": [2, 2, 3]})
+    rng = np.random.default_rng(5)
+    d = 0.02 * rng.standard_normal((model.n_nodes, 3))
+    v = rng.standard_normal((model.n_nodes, 3))
+    state = system.evaluate(d, 0.5, 0.7)
+    eps = 1e-6
+    fd = (system.evaluate(d + eps * v, 0.5, 0.7).vol.pressure - system.evaluate(d - eps * v, 0.5, 0.7).vol.pressure) / (2 * eps)
+    slope = system.linearised_pressure(state, v) - state.vol.pressure
+    assert np.allclose(slope, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
+    assert np.allclose(system.linearised_pressure(state, 0 * v), state.vol.pressure, rtol=1e-14)
+    same = system.evaluate(d, 0.5, 0.7, pressure=state.vol.pressure)
+    assert np.array_equal(same.A, state.A)
+    other = system.evaluate(d, 0.5, 0.7, pressure=state.vol.pressure + 10.0)
+    assert np.array_equal(other.r, state.r) and not np.allclose(other.A, state.A)
+
+
 def test_one_cell_patches_are_the_nodal_formulation():
     model = _body()
     nodal = _system(model, {"method": "nodal"})

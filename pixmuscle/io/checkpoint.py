@@ -19,7 +19,7 @@ written. Layout:
     before the first increment;
 ``/newton/<column>``
     Newton log rows of the converged steps (columns of :data:`pixmuscle.mechanics.results.NEWTON_COLUMNS`);
-``/solver/d`` (N, 3) cm, ``t``, ``alpha``, attributes ``counters`` (JSON) and ``backend``
+``/solver/d`` (N, 3) cm, ``t``, ``alpha``, ``pressure`` (N_p,) N/cm² where Newton carried one, attributes ``counters`` (JSON) and ``backend``
     the linear solver's memory after the last step (:class:`~pixmuscle.mechanics.linsolve.SolverMemory`):
     the state whose tangent its preconditioner or factors were built from, and its rebuild rule's
     counters; a resumed solve rebuilds them there and decides as the uninterrupted one. Absent for
@@ -119,6 +119,8 @@ def save_checkpoint(path: str | Path, records: Sequence[StepRecord], *, key: str
             g.create_dataset("alpha", data=float(mem.alpha))
             g.attrs["counters"] = json.dumps({k: float(v) for k, v in mem.counters.items()})
             g.attrs["backend"] = mem.backend
+            if mem.pressure is not None:
+                g.create_dataset("pressure", data=np.asarray(mem.pressure, float))
         rows = [row for r in records for row in r.rows]
         ng = f.create_group("newton")
         for c in NEWTON_COLUMNS:
@@ -151,7 +153,8 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
             if "solver" in f:
                 g = f["solver"]
                 mem = SolverMemory(d=np.asarray(g["d"][()], float), t=float(g["t"][()]), alpha=float(g["alpha"][()]),
-                                   counters=json.loads(g.attrs["counters"]), backend=str(g.attrs["backend"]))
+                                   counters=json.loads(g.attrs["counters"]), backend=str(g.attrs["backend"]),
+                                   pressure=np.asarray(g["pressure"][()], float) if "pressure" in g else None)
             key = f.attrs["key"]
             n_steps = int(f.attrs["n_steps_planned"])
         except (KeyError, ValueError) as exc:

@@ -163,6 +163,7 @@ class NewtonConfig:
     hold_cutback: bool = field(default=True, metadata={"doc": "after a cutback the halved load increment is kept for the rest of the ramp, the reported load steps unchanged (an increment that overshot once tends to overshoot again: on the 74k leg every full activation increment did, and each cost a solve given up on); false: every load step starts again at its full increment"})
     line_search: bool = True
     max_line_search: int = field(default=8, metadata={"range": (0, None)})
+    pressure_update: Literal["exact", "linearised"] = field(default="linearised", metadata={"doc": "projected volumetric energy: the patch pressure in the tangent of the next Newton iteration. exact: K̄(θ − 1) of the new state; linearised: the pressure Newton on the mixed (displacement, pressure) form carries, K̄(θ − 1 + g·Δd) from the last state, which leaves out the bulk-modulus-amplified second-order term of a large update (the 21k leg's load step 1: 3 Newton iterations against 7). Residual, convergence tests and results are those of the exact pressure either way"})
 
     def __post_init__(self):
         if self.max_iterations < 2 and self.energy_tol < 1.0:

@@ -34,6 +34,14 @@ current tangent takes fewer iterations on the clamped block, and on the 21k leg 
 solvers' preconditioner is then built for the activated state (docs/performance.md, "Newton
 convergence").
 
+Pressure between iterations (projected volumetric energy, ``pressure_update``). The condensed
+tangent's geometric term holds the patch pressure. ``exact`` takes K̄(θ − 1) of the new state;
+``linearised`` takes K̄(θ − 1 + g·s Δd) from the last state, the pressure that Newton on the
+mixed (displacement, pressure) form carries. Eliminating that form's pressure increment gives
+back the condensed update equation K Δd = r(d), so only the tangent differs. The exact pressure
+of a large update holds K̄ times the second-order part of the dilatation, which the linearised
+one leaves out.
+
 Line search (:func:`line_search`): an energy line search — the step factor s is the root of
 Π′(s) = −Δd·r(d + sΔd), bracketed and interpolated by regula falsi, unless the full step already
 lowers ‖r‖. A step that still fails, a non-finite residual, a linear solve that gives
@@ -273,6 +281,8 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0, fallba
             return NewtonResult(state, False, it, rows, rel, f"line search failed: {why}")
         rows.append(NewtonRow(step, t, it, rn, rel, en, s))
         en_last = s * en
+        if cfg.pressure_update == "linearised" and getattr(state, "vol", None) is not None:
+            trial = system.evaluate(trial.d, trial.t, trial.alpha, pressure=system.linearised_pressure(state, s * dd))
         state = trial
     return NewtonResult(state, False, cfg.max_iterations, rows, rel,
                         f"no convergence in {cfg.max_iterations} iterations")

@@ -84,6 +84,9 @@ class State:
     r: np.ndarray
     force_scale: float
     vol: VolumetricState | None = None
+    #: patch pressure (N_p,) N/cm² of the tangent when Newton carries one (``evaluate``'s ``pressure``);
+    #: None: the pressure of d
+    pressure: np.ndarray | None = None
 
 
 class MechanicalSystem:
@@ -208,15 +211,19 @@ class MechanicalSystem:
                 P[idx] = mat.stress(F[idx], **kw)
         return P, A
 
-    def evaluate(self, d: np.ndarray, t: float, alpha: float) -> State:
-        """Residual r = −(f_int + f_stab + f_pen) at coefficients d; raises SolverError on inversion."""
+    def evaluate(self, d: np.ndarray, t: float, alpha: float, pressure: np.ndarray | None = None) -> State:
+        """Residual r = −(f_int + f_stab + f_pen) at coefficients d; raises SolverError on inversion.
+
+        ``pressure`` (N_p,) N/cm², projected volumetric energy only: the patch pressure of the
+        tangent's geometric term (the pressure Newton carries, :meth:`linearised_pressure`) in
+        place of K̄_p (θ_p − 1); the residual, energy and stresses keep the pressure of d."""
         t0 = time.perf_counter()
         F = self.scni.deformation_gradient(d)
         P, A = self.material_response(F, alpha, tangent=True)
         vs = None
         if self.volumetric is not None:
             vs = self.volumetric.state(F)
-            A = self.volumetric.tangent(A, vs)
+            A = self.volumetric.tangent(A, vs if pressure is None else self.volumetric.carried(vs, pressure))
             P = self.volumetric.stress(P, vs)
         fi = self.scni.internal_force(P)
         fs = self.stabilization_force(d)
@@ -227,7 +234,16 @@ class MechanicalSystem:
         scale = max(float(np.linalg.norm(fi)), float(np.linalg.norm(fp)))
         self.timings["material_s"] += time.perf_counter() - t0
         self.timings["n_evaluate"] += 1
-        return State(d=d, t=t, alpha=alpha, F=F, P=P, A=A, r=r, force_scale=scale, vol=vs)
+        return State(d=d, t=t, alpha=alpha, F=F, P=P, A=A, r=r, force_scale=scale, vol=vs,
+                     pressure=None if pressure is None else np.asarray(pressure, float))
+
+    def linearised_pressure(self, state: State, dd: np.ndarray) -> np.ndarray:
+        """Patch pressure after the update ``dd`` (N, 3) cm from ``state``, linearised:
+        K̄_p (θ_p − 1 + g_p · dd), N/cm², (N_p,) — the pressure increment of Newton on the mixed
+        (displacement, pressure) form, whose update of d is the condensed one (:mod:`.newton`)."""
+        grad = self.scni.deformation_gradient(dd) - np.eye(3)  # ∇̃dd at every node
+        vol = self.volumetric
+        return vol.kbar * (state.vol.dtheta + vol.Q @ np.einsum("nij,nij->n", state.vol.a, grad))
 
     def _add_patches(self, asm: Assembler, state: State, out: np.ndarray) -> None:
         """Rank-one patch terms Σ_p V_p K̄_p g_p g_pᵀ of the projected volumetric energy.

@@ -176,6 +176,12 @@ class PatchProjection:
         shift = pressure[self.patch_of] - self.bulk * (J - 1.0)
         return VolumetricState(J=J, a=a, dtheta=dtheta, pressure=pressure, shift=shift)
 
+    def carried(self, vs: VolumetricState, pressure: np.ndarray) -> VolumetricState:
+        """``vs`` with the patch pressure ``pressure`` (N_p,) N/cm² in place of K̄_p (θ_p − 1): the
+        pressure a Newton iteration carries (:meth:`~..solve.MechanicalSystem.linearised_pressure`)."""
+        shift = pressure[self.patch_of] - self.bulk * (vs.J - 1.0)
+        return dataclasses.replace(vs, pressure=np.asarray(pressure, float), shift=shift)
+
     def stress(self, P: np.ndarray, vs: VolumetricState) -> np.ndarray:
         """P̃_L = P_L + (p_p − K_L (J_L − 1)) a_L, N/cm², shape (N, 3, 3)."""
         return P + vs.shift[:, None, None] * vs.a

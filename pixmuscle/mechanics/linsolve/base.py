@@ -107,9 +107,16 @@ class LinearSolver:
 
 
 def built_from(state) -> tuple:
-    """(d (N, 3) cm, copied; t; α) of an evaluated ``state``: what a backend keeps to say which
-    tangent its factors or preconditioner are of (:class:`SolverMemory`)."""
-    return np.array(state.d, float), float(state.t), float(state.alpha)
+    """(d (N, 3) cm, copied; t; α; the tangent's carried patch pressure or None) of an evaluated
+    ``state``: what a backend keeps to say which tangent its factors or preconditioner are of
+    (:class:`SolverMemory`)."""
+    p = getattr(state, "pressure", None)
+    return np.array(state.d, float), float(state.t), float(state.alpha), None if p is None else np.array(p, float)
+
+
+def memory_state(system, memory: SolverMemory):
+    """The state whose tangent ``memory`` was built from, evaluated again."""
+    return system.evaluate(np.asarray(memory.d, float), memory.t, memory.alpha, pressure=memory.pressure)
 
 
 @dataclasses.dataclass
@@ -128,6 +135,8 @@ class SolverMemory:
     backend : str
         :attr:`LinearSolver.memory_tag` of the solver that kept it (a resumed solve with another, e.g.
         ``auto`` on a machine without MKL or petsc4py, does not use it).
+    pressure : (N_p,) float or None
+        The patch pressure of that tangent when Newton carried one (N/cm²), else None.
     """
 
     d: np.ndarray
@@ -135,6 +144,7 @@ class SolverMemory:
     alpha: float
     counters: dict
     backend: str = ""
+    pressure: np.ndarray | None = None
 
 
 def rigid_body_modes(X: np.ndarray) -> np.ndarray:

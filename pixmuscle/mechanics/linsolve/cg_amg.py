@@ -19,7 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...errors import SolverError, SolverGaveUp
-from .base import BACKENDS, Iterative, LinearSolver, SolverMemory, built_from, pcg, rigid_body_modes
+from .base import BACKENDS, Iterative, LinearSolver, SolverMemory, built_from, memory_state, pcg, rigid_body_modes
 from .fgmres import fgmres
 from .multigrid import AMG_CHOICES, resolve, v_cycle
 
@@ -131,7 +131,7 @@ class KrylovAMGSolver(LinearSolver):
         self._stale = True
         self._system = None
         self._state = None
-        self._built_at = None  # (d, t, α) of the state the hierarchy was built from
+        self._built_at = None  # (d, t, α, carried pressure) of the state the hierarchy was built from
         self.info.update(preconditioner_builds=0, krylov_iterations=0, levels=0, operator_complexity=0.0,
                          indefinite_solves=0, amg=self.amg)
 
@@ -251,7 +251,8 @@ class KrylovAMGSolver(LinearSolver):
         if self._built_at is None:
             return None
         rate = np.nan if self._rate0 is None else self._rate0
-        return SolverMemory(*self._built_at, counters={"rate0": rate, "excess": self._excess, "stale": float(self._stale),
+        d, t, alpha, pressure = self._built_at
+        return SolverMemory(d, t, alpha, pressure=pressure, counters={"rate0": rate, "excess": self._excess, "stale": float(self._stale),
                                                         "rate_last": np.nan if self._rate_last is None else self._rate_last},
                             backend=self.memory_tag)
 
@@ -261,7 +262,7 @@ class KrylovAMGSolver(LinearSolver):
         c = memory.counters
         self._M = None
         if not c["stale"]:
-            self.prepare(system, system.evaluate(np.asarray(memory.d, float), memory.t, memory.alpha))
+            self.prepare(system, memory_state(system, memory))
         self._rate0 = None if np.isnan(c["rate0"]) else float(c["rate0"])
         self._excess, self._stale = float(c["excess"]), bool(c["stale"])
         last = c.get("rate_last", np.nan)

@@ -11,7 +11,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 from ...errors import SolverError
-from .base import BACKENDS, LinearSolver, SolverMemory, Tolerance, built_from, pcg
+from .base import BACKENDS, LinearSolver, SolverMemory, Tolerance, built_from, memory_state, pcg
 from .factorization import ENGINES, PARDISO_MISSING, engine_name
 
 
@@ -118,7 +118,7 @@ class DirectSolver(LinearSolver):
         self._K = None
         self._op = None
         self._system = self._state = None
-        self._K_at = None  # (d, t, α) of the state whose tangent self._K is (None: not known)
+        self._K_at = None  # (d, t, α, carried pressure) of the state whose tangent self._K is (None: not known)
         self._factored_at = None  # the same for the kept factors
         self.info.update(factorizations=0, krylov_iterations=0, engine=name, analysis_s=0.0)
 
@@ -232,12 +232,13 @@ class DirectSolver(LinearSolver):
         refactorises anyway)."""
         if self._factored_at is None or not self.policy.keep():  # none, or refactorised at the next system anyway
             return None
-        return SolverMemory(*self._factored_at, backend=self.memory_tag, counters={
+        d, t, alpha, pressure = self._factored_at
+        return SolverMemory(d, t, alpha, pressure=pressure, backend=self.memory_tag, counters={
             "factors": float(_FACTORS.index(self.policy.factors)), "level": float(getattr(self.engine, "level", 0))})
 
     def recall(self, system, memory: SolverMemory) -> None:
         """Factorise the tangent at ``memory``'s state and restore the reuse rule's verdict on it."""
-        state = system.evaluate(np.asarray(memory.d, float), memory.t, memory.alpha)
+        state = memory_state(system, memory)
         self._system = self._state = None
         self._K, self._op = system.stiffness(state), None
         self._K_at = built_from(state)

@@ -281,7 +281,7 @@ class PETScMixedSolver(PETScSolver):
         ksp.setFromOptions()
         self._set_region_subdomains(system, pc)
         if self.schur == "probed":
-            self._probe_schur(system, vol, pc, A01, A10, S, w * w / D, mine)
+            self._probe_schur(vol, pc, A01, A10, S, w * w / D, mine)
         b = PETSc.Vec().createMPI((n_loc + m_loc, PETSc.DECIDE), comm=self.comm)  # per rank: [u; p] owned
         z = b.duplicate()
         start = b.getOwnershipRange()[0]
@@ -327,7 +327,7 @@ class PETScMixedSolver(PETScSolver):
                       for r in self._regions or [np.empty(0, PETSc.IntType)]]
         asm.setASMLocalSubdomains(len(subdomains), subdomains)
 
-    def _probe_schur(self, system, vol, pc, A01, A10, S, c22: np.ndarray, mine: np.ndarray) -> None:
+    def _probe_schur(self, vol, pc, A01, A10, S, c22: np.ndarray, mine: np.ndarray) -> None:
         """Set −Ŝ = −(w² D⁻¹ + diag(w² G M Gᵀ)) in ``S``, the diagonal probed as in
         :func:`.mixed.probed_schur_diagonal` (same colours and signs, so one rank and several give
         the same numbers) with M the displacement split's preconditioner, applied outside the KSP.
