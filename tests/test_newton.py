@@ -90,8 +90,9 @@ def test_clamped_oblique_block_converges_in_15_iterations_per_step_without_cutba
 
 def test_linearised_pressure_update_reaches_the_same_equilibrium():
     """``newton.pressure_update: linearised`` changes only the tangent's pressure between
-    iterations (Newton on the mixed form): the clamped oblique block's sweep converges at every step
-    to the forces of the exact update (1e-6 of the largest, Newton tolerance 1e-8)."""
+    iterations, and ``mixed`` with ``mixed_amg`` runs Newton on the mixed form (the pressure an
+    unknown, solves stopped on the mixed residual): the clamped oblique block's sweep converges at
+    every step to the forces of the exact update (1e-6 of the largest, Newton tolerance 1e-8)."""
     from pixmuscle.mechanics.linsolve import make_solver
     from pixmuscle.mechanics.newton import load_steps
 
@@ -99,12 +100,14 @@ def test_linearised_pressure_update_reaches_the_same_equilibrium():
     cfg = _cfg(steps=5, newton={"residual_tol": 1e-8, "energy_tol": 1e-14})
     system, _ = build_system(model, cfg)
     runs = {}
-    for mode in ("exact", "linearised"):
+    for mode, backend in (("exact", "direct"), ("linearised", "direct"), ("mixed", "mixed_amg")):
         runs[mode] = load_steps(system, 5, 0.0, 0.95, dataclasses.replace(cfg.newton, pressure_update=mode),
-                                make_solver("direct", model.X, ijk=model.ijk))
+                                make_solver(backend, model.X, ijk=model.ijk))
         assert len(runs[mode]) == 6 and all(r.cutbacks == 0 for r in runs[mode])
+    assert runs["mixed"][-1].state.pressure is not None
     f = {m: np.array([system.constraints.reactions(r.state.d, r.t)["z_max"] for r in recs]) for m, recs in runs.items()}
-    assert np.allclose(f["linearised"], f["exact"], rtol=0, atol=1e-6 * np.abs(f["exact"]).max())
+    for mode in ("linearised", "mixed"):
+        assert np.allclose(f[mode], f["exact"], rtol=0, atol=1e-6 * np.abs(f["exact"]).max()), mode
 
 
 def test_a_linear_solve_that_gives_up_cuts_the_increment_back():

@@ -21,6 +21,7 @@ node's material, f_int,I = Σ_L V_L P_L b̃_I(X_L) (eq. 19) and K = Σ_L V_L B̃
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import time
 
@@ -244,6 +245,35 @@ class MechanicalSystem:
         grad = self.scni.deformation_gradient(dd) - np.eye(3)  # ∇̃dd at every node
         vol = self.volumetric
         return vol.kbar * (state.vol.dtheta + vol.Q @ np.einsum("nij,nij->n", state.vol.a, grad))
+
+    @functools.cached_property
+    def pressure_weight(self) -> float:
+        """w = mean(μ_p V_p) / s over the free patches, N: the force that a unit pressure residual
+        θ_p − 1 − p_p/K̄_p stands for in the mixed form (:func:`.linsolve.mixed.pressure_scale`)."""
+        from .linsolve.mixed import pressure_scale
+        from .volumetric import shear_moduli
+
+        vol = self.volumetric
+        free = ~vol.held
+        return pressure_scale(vol.Q[free] @ shear_moduli(self.A0), vol.vp[free], self.model.spacing)
+
+    def mixed_residual(self, state: State) -> tuple[np.ndarray, np.ndarray | None]:
+        """Residuals of the mixed (displacement, pressure) form at d and the pressure ``state`` carries.
+
+        r_u = r − Σ_L V_L B̃_Lᵀ((p_c − p)_{p(L)} a_L), the residual r with the carried pressure p_c
+        of the free patches in place of their pressure p = K̄(θ − 1) of d, N, (N, 3); and
+        r_p = θ − 1 − p_c/K̄, dimensionless, (N_p,), 0 at held single-node patches (their pressure
+        is no unknown). Without a carried pressure: (r, zeros). Eliminating the pressure rows
+        gives back r: r = r_u − Gᵀ(V K̄ r_p).
+        """
+        vol = self.volumetric
+        if vol is None or state.vol is None:
+            return state.r, None
+        if state.pressure is None:
+            return state.r, np.zeros(vol.n_patches)
+        dp = np.where(vol.held, 0.0, state.pressure - state.vol.pressure)
+        r_u = state.r - self.scni.internal_force(dp[vol.patch_of][:, None, None] * state.vol.a)
+        return r_u, np.where(vol.held, 0.0, state.vol.dtheta - state.pressure / vol.kbar)
 
     def _add_patches(self, asm: Assembler, state: State, out: np.ndarray) -> None:
         """Rank-one patch terms Σ_p V_p K̄_p g_p g_pᵀ of the projected volumetric energy.
@@ -589,6 +619,14 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
             lin_time["solve_s"] += time.perf_counter() - t0
             lin_time["iterations"].append(linsolver.info["iterations"])
             return x
+
+        if hasattr(linsolver, "solve_mixed"):  # Newton then runs on the mixed form (newton.py)
+            def solve_mixed(self, r, rp, rtol=None):
+                t0 = time.perf_counter()
+                out = linsolver.solve_mixed(r, rp, rtol=rtol)
+                lin_time["solve_s"] += time.perf_counter() - t0
+                lin_time["iterations"].append(linsolver.info["iterations"])
+                return out
 
     done: list = []
 

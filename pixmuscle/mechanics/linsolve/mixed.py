@@ -49,7 +49,9 @@ w = mean_p(μ_p V_p) / s (N, s the smallest voxel edge): the system stays symmet
 both residual blocks are forces (N) and no block grows with K. (Scaling the second row by D
 instead makes the lower-left block K-scaled, and the iterations grow with K.) The condensed
 residual is r − K Δd = r₁ + Gᵀ (D/w) r₂ (rᵢ the mixed residual blocks), so it can lag the mixed
-one by up to K/μ. The solve stops on the exact condensed residual: each time FGMRES meets its
+one by up to K/μ. :meth:`MixedBlockSolver.solve_mixed`, the update of Newton on the mixed form
+(:mod:`..newton`), takes the pressure residual as the second block and stops on the mixed
+residual. :meth:`MixedBlockSolver.solve` (the condensed update) stops on the exact condensed residual: each time FGMRES meets its
 target, the condensed residual of that iterate is computed, and while it lags FGMRES goes on in
 the same Krylov basis with the target tightened by the lag it showed (:func:`.fgmres.fgmres`'s
 ``check``). Restarting there instead forgets the directions FGMRES has found: on the 20k leg
@@ -313,7 +315,7 @@ class MixedBlockSolver(KrylovAMGSolver):
         vp, kbar = vol.vp[press], vol.kbar[press]
         mu = vol.Q[press] @ self._mu_node
         D = vp * kbar
-        w = pressure_scale(mu, vp, system.model.spacing)
+        w = system.pressure_weight
         self._mixed = (_Mixed(Kd, G, D, w), _BlockTriangular(self._M, G, self._schur_diagonal(D, w, mu, vp), w,
                                                              Kd.shape[0]))
 
@@ -410,11 +412,62 @@ class MixedBlockSolver(KrylovAMGSolver):
             if total >= self.maxiter:
                 status = "maxiter"
                 break
+        self._close(t0, setup0, status, total, stale, rtol)
+        return x
+
+    def solve_mixed(self, r: np.ndarray, rp: np.ndarray, rtol=None) -> tuple[np.ndarray, np.ndarray | None]:
+        """One update of Newton on the mixed form: [K_d, Gᵀ; G, −D⁻¹] [Δd; Δq] = [r; −r_p], Δq = V∘Δp.
+
+        The solve stops on the mixed residual ‖[r₁; r₂]‖ ≤ rtol ‖[r; −w r_p]‖ (both blocks in N),
+        not on the condensed one, which lags it by up to K/μ (module docstring): the pressure
+        rows' residual stays in the pressure equations of the next Newton iteration instead of
+        being multiplied by the bulk modulus.
+
+        Parameters
+        ----------
+        r : (3N,) float
+            Force residual with the carried patch pressure, N (:meth:`~..solve.MechanicalSystem.mixed_residual`).
+        rp : (N_p,) float
+            Pressure residual θ_p − 1 − p_p/K̄_p of every patch (0 at held ones), dimensionless.
+        rtol : float, optional
+
+        Returns
+        -------
+        dd : (3N,) float
+            Displacement update, cm.
+        dp : (N_p,) float or None
+            Pressure update of every patch, N/cm² (0 at held patches); None without patches (the
+            update is then :meth:`solve`'s).
+        """
+        if self._mixed is None:
+            return self.solve(r, rtol), None
+        t0 = time.perf_counter()
+        setup0 = self.info["setup_s"]
+        rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
+        A, P = self._mixed
+        press = self._press
+        rhs = np.concatenate([np.asarray(r, float), -A.w * np.asarray(rp, float)[press]])
+        z, total, status = fgmres(A, rhs, P, rtol, self._budget(rtol), restart=self.restart)
+        stale = 0
+        if status == "maxiter" and not self._fresh and total < self.maxiter:
+            _LOG.debug("FGMRES: %d iterations with a kept preconditioner cost more than a rebuild; rebuilding it", total)
+            self._build()
+            self._refresh()
+            stale = total
+            z, its, status = fgmres(A, rhs, P, rtol, self._retry_budget(rtol, total), restart=self.restart)
+            total += its
+        self._close(t0, setup0, status, total, stale, rtol)
+        n = A.n
+        dp = np.zeros(np.asarray(rp).size)
+        dp[press] = A.w * z[n:] / self._system.volumetric.vp[press]
+        return z[:n], dp
+
+    def _close(self, t0, setup0, status, total, stale, rtol):
+        """Book-keeping of one solve; raises when it did not converge."""
         self.info["iterations"] = total
         self.info["krylov_iterations"] += total
         self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
         if status != "converged":
             raise self._fail("FGMRES", status, total, rtol)
         self._account(total - stale, rtol)  # the iterations of the preconditioner in use now
-        return x
 

@@ -102,7 +102,7 @@ from ...errors import SolverError
 from ..volumetric import shear_moduli
 from . import multigrid
 from .base import BACKENDS
-from .mixed import PatchDivergence, pressure_scale, probe_colours, refinement_target
+from .mixed import PatchDivergence, probe_colours, refinement_target
 from .petsc import DEFAULT_OPTIONS as CONDENSED_OPTIONS
 from .petsc import PETScOptions, PETScSolver, set_options
 from .subdomains import constraint_regions
@@ -196,6 +196,7 @@ class PETScMixedSolver(PETScSolver):
         self._mixed = None
         self._press = None
         self._gather = None
+        self._pgather = None
         self._regions = None
         self.info.update(refinements=0, pressures=0, region_rows=0)
 
@@ -248,10 +249,10 @@ class PETScMixedSolver(PETScSolver):
         full = system.tangent_operator(state)  # the condensed tangent, matrix-free: the stopping test
         Q = vol.Q[mine]
         vp, kbar = vol.vp[mine], vol.kbar[mine]
+        self._vp = vol.vp
         mu = Q @ self._mu_node
         D = vp * kbar
-        # w from all pressures, so that every rank has the same number
-        w = pressure_scale(vol.Q[patches] @ self._mu_node, vol.vp[patches], system.model.spacing)
+        w = system.pressure_weight  # from all free patches: every rank has the same number
         G = (w * PatchDivergence(full.main.B, full.main.BT, state.vol.a, Q).sparse()).tocsr()
         G.indices = self.pos[G.indices]
         G.has_sorted_indices = False
@@ -288,8 +289,11 @@ class PETScMixedSolver(PETScSolver):
         if self._gather is None:  # the displacement part of a solution to every rank
             xu = PETSc.Vec().createMPI((n_loc, n), comm=self.comm)
             self._gather = (xu, *PETSc.Scatter.toAll(xu))
+        if self._pgather is None:  # and its pressure part
+            xp = PETSc.Vec().createMPI((m_loc, m), comm=self.comm)
+            self._pgather = (xp, *PETSc.Scatter.toAll(xp))
         self._mixed = {"ksp": ksp, "A": A, "b": b, "z": z, "t": b.duplicate(), "u": isu.getIndices() - start,
-                       "K": full, "blocks": (A00, A01, A10, A11, S)}
+                       "p": isp.getIndices() - start, "w": w, "K": full, "blocks": (A00, A01, A10, A11, S)}
         self.info["preconditioner_builds"] += 1
         self.info["setup_s"] = time.perf_counter() - t0
         self.info["nnz_local"] = int(Kd.nnz + 2 * G.nnz)
@@ -431,6 +435,47 @@ class PETScMixedSolver(PETScSolver):
                               f"{rtol:.1e}); try solver.petsc_options {{{amg}: hypre}} or the "
                               "condensed backend petsc, or check the boundary conditions")
         return x.reshape(r.shape)
+
+    def solve_mixed(self, r, rp, rtol=None):
+        """One update of Newton on the mixed form, as :meth:`.mixed.MixedBlockSolver.solve_mixed`: the
+        force residual ``r`` (3N,) N and the pressure residual ``rp`` (N_p,) as the two blocks, one
+        KSP solve stopped on the mixed residual; returns (Δd (3N,) cm, Δp (N_p,) N/cm², 0 at held
+        patches) on every rank."""
+        if self._mixed is None:
+            return self.solve(r, rtol), None
+        t0 = time.perf_counter()
+        rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
+        mx = self._mixed
+        ksp, b, z, w = mx["ksp"], mx["b"], mx["z"], mx["w"]
+        patches, _, mine = self._press
+        barr = b.getArray()
+        barr[mx["u"]] = np.asarray(r, float).ravel()[self.dof[self.lo:self.hi]]
+        barr[mx["p"]] = -w * np.asarray(rp, float)[mine]
+        b.setArray(barr)
+        ksp.setTolerances(rtol=rtol, atol=0.0, max_it=self.maxiter)
+        ksp.solve(b, z)
+        its, reason = int(ksp.getIterationNumber()), int(ksp.getConvergedReason())
+        zarr = z.getArray()
+        scatter = self.PETSc.ScatterMode.FORWARD
+        xu, gather, xall = self._gather
+        xu.setArray(zarr[mx["u"]])
+        gather.scatter(xu, xall, addv=False, mode=scatter)
+        x = np.zeros(np.asarray(r).size)
+        x[self.dof] = xall.getArray()
+        xp, pgather, pall = self._pgather
+        xp.setArray(zarr[mx["p"]])
+        pgather.scatter(xp, pall, addv=False, mode=scatter)
+        dp = np.zeros(np.asarray(rp).size)
+        dp[patches] = w * pall.getArray() / self._vp[patches]
+        self.info["iterations"] = its
+        self.info["krylov_iterations"] += its
+        self.info["solve_s"] = time.perf_counter() - t0
+        if reason < 0:
+            amg = "fieldsplit_u_sub_0_pc_type" if self.region_solves else "fieldsplit_u_pc_type"
+            raise SolverError(f"petsc_mixed: KSP fgmres with the Schur field split diverged (PETSc reason {reason}) "
+                              f"after {its} iterations (target {rtol:.1e}); try solver.petsc_options {{{amg}: hypre}} "
+                              "or the condensed backend petsc, or check the boundary conditions")
+        return x, dp
 
     def statistics(self) -> dict:
         """As ``petsc``, plus ``refinements`` (mixed re-solves for the condensed residual, all solves)."""
