@@ -69,6 +69,7 @@ def test_owned_rows_equal_the_rows_of_the_whole_tangent(volumetric):
         owned = order[bounds[r]:bounds[r + 1]]
         rows = RowAssembler(system, owned)
         assert rows.cells.size < model.n_nodes  # a halo, not the whole body
+        assert np.count_nonzero(np.diff(rows.asm.indptr)) == owned.size  # and only the owned block rows
         dofs = (3 * owned[:, None] + np.arange(3)).ravel()
         diff = rows.rows(state) - K[dofs]
         assert abs(diff).max() < 1e-12 * abs(K).max()

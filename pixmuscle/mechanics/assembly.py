@@ -43,9 +43,10 @@ def _far(ijk, wide, na, nb, reach):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _fill(ptr, nodes, g, A, w, indptr, indices, data, ijk, reach, wide):  # pragma: no cover - compiled
+def _fill(ptr, nodes, g, A, w, indptr, indices, data, ijk, reach, wide, keep):  # pragma: no cover - compiled
     nc = ptr.shape[0] - 1
     filtered = reach >= 0
+    restricted = keep.shape[0] > 0
     t = np.empty((3, 3, 3))
     for L in range(nc):
         s = ptr[L]
@@ -66,6 +67,8 @@ def _fill(ptr, nodes, g, A, w, indptr, indices, data, ijk, reach, wide):  # prag
                         t[i, J, k] = wL * (A[L, i, J, k, 0] * g0 + A[L, i, J, k, 1] * g1 + A[L, i, J, k, 2] * g2)
             for aa in range(s, e):
                 na = nodes[aa]
+                if restricted and not keep[na]:
+                    continue
                 h0 = g[aa, 0]
                 h1 = g[aa, 1]
                 h2 = g[aa, 2]
@@ -94,10 +97,11 @@ def _patch_vectors(ptr, nodes, g, a, wv, patch_of, pptr, pnodes, out):  # pragma
 
 
 @numba.njit(cache=True, nogil=True)
-def _fill_rank1(pptr, pnodes, v, coef, indptr, indices, data, ijk, reach, wide):  # pragma: no cover - compiled
+def _fill_rank1(pptr, pnodes, v, coef, indptr, indices, data, ijk, reach, wide, keep):  # pragma: no cover - compiled
     """data[(I, J)] += coef[p] v[(p, I)] ⊗ v[(p, J)] for every patch p and node pair of its support."""
     npatch = pptr.shape[0] - 1
     filtered = reach >= 0
+    restricted = keep.shape[0] > 0
     for p in range(npatch):
         c = coef[p]
         if c == 0.0:
@@ -106,6 +110,8 @@ def _fill_rank1(pptr, pnodes, v, coef, indptr, indices, data, ijk, reach, wide):
         e = pptr[p + 1]
         for aa in range(s, e):
             na = pnodes[aa]
+            if restricted and not keep[na]:
+                continue
             for bb in range(s, e):
                 nb = pnodes[bb]
                 if filtered and _far(ijk, wide, na, nb, reach):
@@ -158,6 +164,9 @@ class Assembler:
         Patch–cell membership of a projected volumetric energy (:mod:`.volumetric`): the pattern
         then also holds every node pair in the support of one patch (its rank-one term,
         :meth:`fill_patches`).
+    rows : (n,) int, optional
+        Keep only the block rows of these nodes (the others stay empty, and the fills skip them):
+        the rows of a subset of the nodes without the memory of the whole pattern.
 
     Attributes
     ----------
@@ -166,7 +175,7 @@ class Assembler:
     """
 
     def __init__(self, support: sp.csr_matrix, ijk: np.ndarray | None = None, reach: int | None = None,
-                 wide: np.ndarray | None = None, patches: sp.csr_matrix | None = None):
+                 wide: np.ndarray | None = None, patches: sp.csr_matrix | None = None, rows: np.ndarray | None = None):
         S = sp.csr_matrix(support)
         S.sort_indices()
         self.n_cells, self.n_nodes = S.shape
@@ -188,6 +197,15 @@ class Assembler:
             self.pnodes = Sp.indices.astype(itp)
             del Sp, M
         del Sb
+        self.keep = np.zeros(0, np.bool_)
+        if rows is not None:
+            self.keep = np.zeros(self.n_nodes, np.bool_)
+            self.keep[np.asarray(rows, np.int64)] = True
+            sel = np.repeat(self.keep, np.diff(P.indptr))
+            P = sp.csr_matrix((P.data[sel], P.indices[sel],
+                               np.concatenate([[0], np.cumsum(np.where(self.keep, np.diff(P.indptr), 0))])),
+                              shape=P.shape)
+            del sel
         P.sort_indices()
         self.reach = -1 if reach is None else int(reach)
         if self.reach >= 0:
@@ -268,7 +286,7 @@ class Assembler:
             out = self.zeros()
         _fill(self.ptr, self.nodes, np.ascontiguousarray(g, dtype=np.float64), np.ascontiguousarray(A, dtype=np.float64),
               np.ascontiguousarray(w, dtype=np.float64), self.indptr, self.indices, out, self.ijk, self.reach,
-              self.wide)
+              self.wide, self.keep)
         return out
 
     def patch_vectors(self, g: np.ndarray, a: np.ndarray, wv: np.ndarray, patch_of: np.ndarray) -> np.ndarray:
@@ -299,7 +317,7 @@ class Assembler:
     def fill_patches(self, v: np.ndarray, coef: np.ndarray, out: np.ndarray) -> np.ndarray:
         """Add Σ_p coef_p g_p g_pᵀ (patch vectors ``v`` from :meth:`patch_vectors`) to block data."""
         _fill_rank1(self.pptr, self.pnodes, np.ascontiguousarray(v, np.float64), np.ascontiguousarray(coef, np.float64),
-                    self.indptr, self.indices, out, self.ijk, self.reach, self.wide)
+                    self.indptr, self.indices, out, self.ijk, self.reach, self.wide, self.keep)
         return out
 
     def block_positions(self, brow: np.ndarray, bcol: np.ndarray, missing: str = "raise") -> np.ndarray:
@@ -326,7 +344,7 @@ class Assembler:
         On a filtered pattern (``reach``) the entries between far nodes are dropped.
         """
         C = sp.coo_matrix(M)
-        pos = self.block_positions(C.row, C.col, missing="mark" if self.reach >= 0 else "raise")
+        pos = self.block_positions(C.row, C.col, missing="mark" if self.reach >= 0 or self.keep.size else "raise")
         keep = pos >= 0
         np.add.at(out[:, i, k], pos[keep], C.data[keep])
         return out

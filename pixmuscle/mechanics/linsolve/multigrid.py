@@ -137,6 +137,11 @@ class BoomerAMG:
         self._A = PETSc.Mat().createAIJ(size=A.shape, bsize=3, comm=PETSc.COMM_SELF,
                                         csr=(A.indptr.astype(idx), A.indices.astype(idx), A.data))
         del A
+        # in place into hypre's own matrix type, which BoomerAMG then uses without a second copy (one
+        # copy of the stand-in less: 0.23 GB at 21k nodes); the conversion forgets the 3 × 3 node
+        # blocks that the nodal coarsening needs
+        self._A.convert("hypre")
+        self._A.setBlockSize(3)
         pc = PETSc.PC().create(comm=PETSc.COMM_SELF)
         pc.setOptionsPrefix(_PREFIX)
         pc.setOperators(self._A)

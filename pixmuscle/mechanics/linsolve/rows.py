@@ -4,10 +4,10 @@ Every row of K belongs to one node I and collects the cells L whose support hold
 (K = Σ_L V_L B̃_Lᵀ A_L B̃_L + K_stab + K_pen, plus the patch terms of the projected volumetric
 energy). The rows of a set of *owned* nodes therefore need only the cells that touch an owned
 node (and, with the projected energy, every cell of the patches among them): the owned nodes plus
-a halo of about one support radius. :class:`RowAssembler` builds the block pattern of that region
-with :class:`~pixmuscle.mechanics.assembly.Assembler` on the restricted cell–node support and fills
-it with the same kernels as the whole tangent; the rows of the owned nodes are exact, the halo rows
-(incomplete) are dropped.
+a halo of about one support radius. :class:`RowAssembler` builds the block pattern of the owned
+rows with :class:`~pixmuscle.mechanics.assembly.Assembler` on the restricted cell–node support
+(``rows``: the halo rows are never formed, so the memory is that of the owned rows) and fills it
+with the same kernels as the whole tangent.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ class RowAssembler:
             self.local_patch = local_patch.ravel().astype(np.int64)
             patches = sp.csr_matrix((np.ones(self.cells.size), (self.local_patch, np.arange(self.cells.size))),
                                     shape=(self.patches.size, self.cells.size))
-        self.asm = Assembler(Sc, patches=patches)
+        self.asm = Assembler(Sc, patches=patches, rows=self.owned)  # the owned block rows only
         self.g = self.asm.on_support([G[self.cells] for G in scni.G])
         self.base = self.asm.zeros()
         keep = sp.diags(mask.astype(float))
