@@ -328,6 +328,8 @@ class MixedBlockSolver(KrylovAMGSolver):
     def _build(self):
         if self._mixed is not None:  # the last system's preconditioner holds the old hierarchy: let it go first
             self._mixed[1].MA = None
+        if self._regions is not None:  # and the region rows, which update() assembles again
+            self._regions.release()
         super()._build()
         vol = self._system.volumetric  # prepare() sets the system before any build
         if vol is None:

@@ -84,9 +84,16 @@ class RegionSolves:
         """Assemble the region rows of K_d at ``state`` and factorise their diagonal blocks."""
         for part in self.parts:
             _, dofs, asm, factor, _ = part
+            part[4] = None  # the old rows go before the new ones are assembled
             rows = asm.rows(state, pressure_free=True)
             part[4] = rows
             factor.factorize(rows[:, dofs])
+
+    def release(self) -> None:
+        """Drop the region rows until the next :meth:`update` (a rebuild frees them before the
+        multigrid's set-up, whose transient copies of the stand-in then do not add to them)."""
+        for part in self.parts:
+            part[4] = None
 
     @property
     def n_nodes(self) -> int:
