@@ -68,7 +68,10 @@ On the 224-node clamped body of the tests BoomerAMG + region solves needs 48 and
 iterations at K × 1 and × 10 with the probed Schur diagonal (63 and 70 with the pressure mass),
 where GAMG + region solves needs 96 and 102 with the mass (docs/petsc.md).
 
-Stopping. Newton asks for a relative residual of the condensed system. The condensed residual of a
+Stopping. With ``solve.newton.pressure_update: mixed`` (the default) Newton runs on the mixed form
+(:mod:`..newton`): :meth:`PETScMixedSolver.solve_mixed` takes the force and pressure residuals as the
+two blocks, makes one KSP solve to the requested mixed tolerance and gathers (Δd, Δp) on every rank.
+A condensed update (:meth:`PETScMixedSolver.solve`) asks for a relative residual of the condensed system. The condensed residual of a
 mixed iterate, r − K Δd = r₁ + Gᵀ (D/w) r₂, can exceed the mixed one by up to K/μ (the pressure rows
 are weighted by D/w). So the mixed system is solved to the requested tolerance, the condensed
 residual of the update is computed with the matrix-free condensed tangent (replicated on every rank,
