@@ -57,6 +57,30 @@ def test_patch_divergence_is_the_derivative_of_the_patch_dilatation():
     assert np.allclose(G.sparse() @ x.ravel(), G @ x.ravel(), rtol=0, atol=1e-12 * np.abs(fd).max())
 
 
+def test_mixed_operator_shares_its_gradient_products():
+    """The mixed operator's fused product (one gradient and one transposed-gradient product for K_d x,
+    w Gᵀ q and w G x) equals the blocks applied one by one, with held single-node patches in K_d."""
+    from pixmuscle.mechanics.linsolve.mixed import _Mixed
+    from pixmuscle.mechanics.tangent import MatrixFreeTangent
+
+    model, system = _system(held="own", penalty={"at": "nodes", "beta": 3.0e4})
+    rng = np.random.default_rng(3)
+    state = system.evaluate(0.02 * rng.standard_normal((model.n_nodes, 3)), 0.5, 0.4)
+    vol = system.volumetric
+    assert vol.held.any()
+    full = system.tangent_operator(state)
+    Kd = MatrixFreeTangent(full.main, full.C, stab=full.stab, penalty=full.penalty,
+                           volumetric=(vol.restricted(vol.held), state.vol))
+    free = np.flatnonzero(~vol.held)
+    G = PatchDivergence(full.main.B, full.main.BT, state.vol.a, vol.Q[free])
+    D = vol.vp[free] * vol.kbar[free]
+    w = system.pressure_weight
+    A = _Mixed(Kd, G, D, w)
+    x, q = rng.standard_normal(3 * model.n_nodes), rng.standard_normal(free.size)
+    ref = np.concatenate([Kd @ x + w * G.T(q), w * (G @ x) - w * w / D * q])
+    assert np.allclose(A @ np.concatenate([x, q]), ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+
+
 def test_fgmres_solves_a_nonsymmetric_system_with_a_changing_preconditioner():
     rng = np.random.default_rng(1)
     A = np.eye(80) * 4 + rng.standard_normal((80, 80)) / 8

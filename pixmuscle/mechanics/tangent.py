@@ -125,8 +125,17 @@ class MatrixFreeTangent(spla.LinearOperator):
         self.volumetric = volumetric
 
     def _matvec(self, v):
+        return self.apply(v)
+
+    def apply(self, v, extra=None) -> np.ndarray:
+        """K v (3N,), with a further stress-like term ``extra(grad) -> (N, 3, 3)`` of the gradients
+        grad[L, i, J] = ∂v_i/∂X_J added before the transposed gradient (as :meth:`ProductForm.apply`):
+        a caller that needs ∇v or adds Bᵀ of its own stress shares the two gradient products."""
         V = np.asarray(v, dtype=np.float64).reshape(-1, 3)
-        y = self.main.apply(self.C, V, extra=None if self.volumetric is None else self._patch_term)
+        term = extra
+        if self.volumetric is not None:
+            term = self._patch_term if extra is None else (lambda grad: self._patch_term(grad) + extra(grad))
+        y = self.main.apply(self.C, V, extra=term)
         if self.stab is not None:
             y += self.stab[0].apply(self.stab[1], V)
         if self.penalty is not None:

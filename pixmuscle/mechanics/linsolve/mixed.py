@@ -111,6 +111,7 @@ class PatchDivergence:
     def __init__(self, B, BT, a: np.ndarray, Q: sp.csr_matrix):
         self.B, self.BT, self.Q = B, BT, Q
         self.n = a.shape[0]
+        self.a = np.ascontiguousarray(a)  # [L, i, J]
         self.aT = np.ascontiguousarray(a.transpose(2, 0, 1))  # [J, L, i]
         self.QT = Q.T.tocsr()
 
@@ -216,7 +217,17 @@ class _Mixed:
 
     def __matmul__(self, z):
         x, q = z[: self.n], z[self.n:]
-        return np.concatenate([self.Kd @ x + self.w * self.G.T(q), self.w * (self.G @ x) - self.c22 * q])
+        G = self.G
+        t = G.QT @ (self.w * q)  # (Qᵀ w q)_L: w Gᵀ q is Σ_L B̃_Lᵀ (t_L a_L), added to K_d's stress
+        seen = []
+
+        def pressure_stress(grad):  # grad[L, i, J]; one gradient product serves K_d x and G x
+            seen.append(grad)
+            return t[:, None, None] * G.a
+
+        y = self.Kd.apply(x, extra=pressure_stress)
+        gx = G.Q @ np.einsum("lij,lij->l", G.a, seen[0])
+        return np.concatenate([y, self.w * gx - self.c22 * q])
 
 
 class _BlockTriangular:
