@@ -613,20 +613,20 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
             linsolver.prepare(system, state)
             lin_time["setup_s"] += time.perf_counter() - t0
 
-        def solve(self, r, rtol=None):
+        @staticmethod
+        def _timed(method, *args, **kw):
             t0 = time.perf_counter()
-            x = linsolver.solve(r, rtol=rtol)
+            out = method(*args, **kw)
             lin_time["solve_s"] += time.perf_counter() - t0
             lin_time["iterations"].append(linsolver.info["iterations"])
-            return x
+            return out
+
+        def solve(self, r, rtol=None):
+            return self._timed(linsolver.solve, r, rtol=rtol)
 
         if hasattr(linsolver, "solve_mixed"):  # Newton then runs on the mixed form (newton.py)
             def solve_mixed(self, r, rp, rtol=None):
-                t0 = time.perf_counter()
-                out = linsolver.solve_mixed(r, rp, rtol=rtol)
-                lin_time["solve_s"] += time.perf_counter() - t0
-                lin_time["iterations"].append(linsolver.info["iterations"])
-                return out
+                return self._timed(linsolver.solve_mixed, r, rp, rtol=rtol)
 
     done: list = []
 

@@ -404,20 +404,15 @@ class MixedBlockSolver(KrylovAMGSolver):
             # a refinement's target: the lag the last pass showed foretells this one's
             target = rtol if not attempt else refinement_target(rtol, bn, rn, lag, floor)
             verdict["target"] = target
-            budget = self.maxiter - total if attempt else self._budget(rtol)
-            z, its, status = fgmres(A, rhs, P, target, budget, restart=self.restart, check=check)
+            if attempt:
+                z, its, status = fgmres(A, rhs, P, target, self.maxiter - total, restart=self.restart, check=check)
+            else:
+                def fresh_verdict(lag=lag, target=target, verdict=verdict):
+                    verdict.clear()  # the new preconditioner's iterations show their own lag
+                    verdict.update(lag=lag, target=target)
+
+                z, its, status, stale = self._fgmres_or_rebuild(rhs, target, rtol, check, fresh_verdict)
             total += its
-            if status == "maxiter" and not self._fresh and attempt == 0 and total < self.maxiter:
-                # the kept preconditioner has cost more than a rebuild: rebuild it and start again
-                _LOG.debug("FGMRES: %d iterations with a kept preconditioner cost more than a rebuild; rebuilding it", its)
-                self._build()
-                self._refresh()
-                stale = total
-                verdict.clear()  # the new preconditioner's iterations show their own lag
-                verdict.update(lag=lag, target=target)
-                z, its, status = fgmres(A, rhs, P, target, self._retry_budget(rtol, total),
-                                        restart=self.restart, check=check)
-                total += its
             x = x + z[:n]
             if status != "converged" or not verdict.get("refine"):
                 break
@@ -460,20 +455,28 @@ class MixedBlockSolver(KrylovAMGSolver):
         A, P = self._mixed
         press = self._press
         rhs = np.concatenate([np.asarray(r, float), -A.w * np.asarray(rp, float)[press]])
-        z, total, status = fgmres(A, rhs, P, rtol, self._budget(rtol), restart=self.restart)
-        stale = 0
-        if status == "maxiter" and not self._fresh and total < self.maxiter:
-            _LOG.debug("FGMRES: %d iterations with a kept preconditioner cost more than a rebuild; rebuilding it", total)
-            self._build()
-            self._refresh()
-            stale = total
-            z, its, status = fgmres(A, rhs, P, rtol, self._retry_budget(rtol, total), restart=self.restart)
-            total += its
+        z, total, status, stale = self._fgmres_or_rebuild(rhs, rtol, rtol)
         self._close(t0, setup0, status, total, stale, rtol)
         n = A.n
         dp = np.zeros(np.asarray(rp).size)
         dp[press] = A.w * z[n:] / self._system.volumetric.vp[press]
         return z[:n], dp
+
+    def _fgmres_or_rebuild(self, rhs, target, rtol, check=None, on_rebuild=None):
+        """FGMRES on the mixed system with the kept preconditioner, within its budget for ``rtol``;
+        when that budget runs out (the kept preconditioner has cost more than a rebuild), rebuild
+        it and start again. Returns (z, iterations, status, iterations of the stale preconditioner)."""
+        A, P = self._mixed
+        z, its, status = fgmres(A, rhs, P, target, self._budget(rtol), restart=self.restart, check=check)
+        if status != "maxiter" or self._fresh or its >= self.maxiter:
+            return z, its, status, 0
+        _LOG.debug("FGMRES: %d iterations with a kept preconditioner cost more than a rebuild; rebuilding it", its)
+        self._build()
+        self._refresh()
+        if on_rebuild is not None:
+            on_rebuild()
+        z, more, status = fgmres(A, rhs, P, target, self._retry_budget(rtol, its), restart=self.restart, check=check)
+        return z, its + more, status, its
 
     def _close(self, t0, setup0, status, total, stale, rtol):
         """Book-keeping of one solve; raises when it did not converge."""
