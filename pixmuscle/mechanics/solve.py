@@ -41,7 +41,7 @@ from .materials import LAWS, needs
 from .results import Results, cauchy_voigt, max_principal
 from .scni import SCNI, build_scni, cell_corners, cell_faces, face_incidence, support_radius
 from .stabilization import stabilization_operators, stabilization_stiffness
-from .tangent import MatrixFreeTangent, ProductForm, spd_surrogate
+from .tangent import ConstantStiffness, MatrixFreeTangent, ProductForm, spd_surrogate
 from .volumetric import PatchProjection, VolumetricState
 
 _LOG = logging.getLogger(__name__)
@@ -147,7 +147,7 @@ class MechanicalSystem:
         if stabilization is not None:
             H, C = stabilization_operators(scni, A0, coefficient=stabilization.coefficient,
                                            modulus=stabilization.modulus)
-            self.stab = (ProductForm(H), C)
+            self.stab = ConstantStiffness(H, C)
         self._main = None
         self._support = None
         self._g = None
@@ -160,7 +160,7 @@ class MechanicalSystem:
         """K_s d (N, 3), N; ``None`` without stabilisation."""
         if self.stab is None:
             return None
-        return self.stab[0].apply(self.stab[1], np.asarray(d, float).reshape(-1, 3))
+        return self.stab.apply(np.asarray(d, float).reshape(-1, 3))
 
     def assembler(self, reach: int | None = None, patches: bool = True) -> tuple[Assembler, np.ndarray]:
         """Block pattern (full, or filtered to ``reach`` voxels) and its constant data (penalty + NSNI).

@@ -100,8 +100,9 @@ class PatchDivergence:
 
     Parameters
     ----------
-    B, BT : sparse (3N × N), (N × 3N)
-        Stacked smoothed-gradient operators G_J (rows J·N + L) and their transpose.
+    B, BT : ThreadedCSR (3N × N), (N × 3N)
+        Stacked smoothed-gradient operators G_J (rows J·N + L) and their transpose
+        (:class:`~..tangent.ProductForm`'s).
     a : (N, 3, 3) float
         a_L = J_L F_L⁻ᵀ.
     Q : CSR (N_p', N)
@@ -122,7 +123,7 @@ class PatchDivergence:
     def sparse(self) -> sp.csr_matrix:
         """G assembled (N_p' × 3N, columns node-major 3m + i), 1/cm."""
         n = self.n
-        rows = [self.Q @ sum(sp.diags(self.aT[J, :, i]) @ self.B[J * n:(J + 1) * n] for J in range(3)) for i in range(3)]
+        rows = [self.Q @ sum(sp.diags(self.aT[J, :, i]) @ self.B.matrix[J * n:(J + 1) * n] for J in range(3)) for i in range(3)]
         return sp.hstack(rows).tocsr()[:, np.arange(3 * n).reshape(3, n).T.ravel()]
 
     def T(self, q: np.ndarray) -> np.ndarray:

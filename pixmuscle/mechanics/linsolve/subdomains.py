@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from ..threaded import ThreadedCSR
 from .factorization import ENGINES, engine_name
 from .rows import RowAssembler
 
@@ -86,7 +87,7 @@ class RegionSolves:
             _, dofs, asm, factor, _ = part
             part[4] = None  # the old rows go before the new ones are assembled
             rows = asm.rows(state, pressure_free=True)
-            part[4] = rows
+            part[4] = ThreadedCSR(rows)
             factor.factorize(rows[:, dofs])
 
     def release(self) -> None:
