@@ -43,10 +43,11 @@ def _far(ijk, wide, na, nb, reach):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _fill(ptr, nodes, g, A, w, indptr, indices, data, ijk, reach, wide, keep):  # pragma: no cover - compiled
+def _fill(ptr, nodes, g, A, w, indptr, indices, data, ijk, reach, wide, keep, keepcol):  # pragma: no cover - compiled
     nc = ptr.shape[0] - 1
     filtered = reach >= 0
     restricted = keep.shape[0] > 0
+    square = keepcol.shape[0] > 0
     t = np.empty((3, 3, 3))
     for L in range(nc):
         s = ptr[L]
@@ -56,6 +57,8 @@ def _fill(ptr, nodes, g, A, w, indptr, indices, data, ijk, reach, wide, keep):  
             continue
         for bb in range(s, e):
             nb = nodes[bb]
+            if square and not keepcol[nb]:
+                continue
             g0 = g[bb, 0]
             g1 = g[bb, 1]
             g2 = g[bb, 2]
@@ -97,11 +100,12 @@ def _patch_vectors(ptr, nodes, g, a, wv, patch_of, pptr, pnodes, out):  # pragma
 
 
 @numba.njit(cache=True, nogil=True)
-def _fill_rank1(pptr, pnodes, v, coef, indptr, indices, data, ijk, reach, wide, keep):  # pragma: no cover - compiled
+def _fill_rank1(pptr, pnodes, v, coef, indptr, indices, data, ijk, reach, wide, keep, keepcol):  # pragma: no cover - compiled
     """data[(I, J)] += coef[p] v[(p, I)] ⊗ v[(p, J)] for every patch p and node pair of its support."""
     npatch = pptr.shape[0] - 1
     filtered = reach >= 0
     restricted = keep.shape[0] > 0
+    square = keepcol.shape[0] > 0
     for p in range(npatch):
         c = coef[p]
         if c == 0.0:
@@ -114,6 +118,8 @@ def _fill_rank1(pptr, pnodes, v, coef, indptr, indices, data, ijk, reach, wide, 
                 continue
             for bb in range(s, e):
                 nb = pnodes[bb]
+                if square and not keepcol[nb]:
+                    continue
                 if filtered and _far(ijk, wide, na, nb, reach):
                     continue
                 lo = _position(indices, indptr[na], indptr[na + 1] - 1, nb)
@@ -167,6 +173,9 @@ class Assembler:
     rows : (n,) int, optional
         Keep only the block rows of these nodes (the others stay empty, and the fills skip them):
         the rows of a subset of the nodes without the memory of the whole pattern.
+    square : bool
+        With ``rows``: keep only the blocks whose column node is one of them too (the diagonal
+        block K_RR of the node set R, which is what a factorisation on R needs).
 
     Attributes
     ----------
@@ -175,7 +184,8 @@ class Assembler:
     """
 
     def __init__(self, support: sp.csr_matrix, ijk: np.ndarray | None = None, reach: int | None = None,
-                 wide: np.ndarray | None = None, patches: sp.csr_matrix | None = None, rows: np.ndarray | None = None):
+                 wide: np.ndarray | None = None, patches: sp.csr_matrix | None = None, rows: np.ndarray | None = None,
+                 square: bool = False):
         S = sp.csr_matrix(support)
         S.sort_indices()
         self.n_cells, self.n_nodes = S.shape
@@ -198,14 +208,17 @@ class Assembler:
             del Sp, M
         del Sb
         self.keep = np.zeros(0, np.bool_)
+        self.keepcol = np.zeros(0, np.bool_)
         if rows is not None:
             self.keep = np.zeros(self.n_nodes, np.bool_)
             self.keep[np.asarray(rows, np.int64)] = True
             sel = np.repeat(self.keep, np.diff(P.indptr))
-            P = sp.csr_matrix((P.data[sel], P.indices[sel],
-                               np.concatenate([[0], np.cumsum(np.where(self.keep, np.diff(P.indptr), 0))])),
-                              shape=P.shape)
-            del sel
+            if square:
+                self.keepcol = self.keep
+                sel &= self.keep[P.indices]
+            counts = np.bincount(np.repeat(np.arange(self.n_nodes), np.diff(P.indptr))[sel], minlength=self.n_nodes)
+            P = sp.csr_matrix((P.data[sel], P.indices[sel], np.concatenate([[0], np.cumsum(counts)])), shape=P.shape)
+            del sel, counts
         P.sort_indices()
         self.reach = -1 if reach is None else int(reach)
         if self.reach >= 0:
@@ -286,7 +299,7 @@ class Assembler:
             out = self.zeros()
         _fill(self.ptr, self.nodes, np.ascontiguousarray(g, dtype=np.float64), np.ascontiguousarray(A, dtype=np.float64),
               np.ascontiguousarray(w, dtype=np.float64), self.indptr, self.indices, out, self.ijk, self.reach,
-              self.wide, self.keep)
+              self.wide, self.keep, self.keepcol)
         return out
 
     def patch_vectors(self, g: np.ndarray, a: np.ndarray, wv: np.ndarray, patch_of: np.ndarray) -> np.ndarray:
@@ -317,7 +330,7 @@ class Assembler:
     def fill_patches(self, v: np.ndarray, coef: np.ndarray, out: np.ndarray) -> np.ndarray:
         """Add Σ_p coef_p g_p g_pᵀ (patch vectors ``v`` from :meth:`patch_vectors`) to block data."""
         _fill_rank1(self.pptr, self.pnodes, np.ascontiguousarray(v, np.float64), np.ascontiguousarray(coef, np.float64),
-                    self.indptr, self.indices, out, self.ijk, self.reach, self.wide, self.keep)
+                    self.indptr, self.indices, out, self.ijk, self.reach, self.wide, self.keep, self.keepcol)
         return out
 
     def block_positions(self, brow: np.ndarray, bcol: np.ndarray, missing: str = "raise") -> np.ndarray:

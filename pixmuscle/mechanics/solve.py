@@ -315,13 +315,24 @@ class MechanicalSystem:
         self.timings["n_assembly"] += 1
         return K
 
-    def tangent_operator(self, state: State) -> MatrixFreeTangent:
-        """The consistent tangent of :meth:`stiffness` as a matrix-free operator (3N × 3N), N/cm."""
+    @property
+    def product_form(self) -> ProductForm:
+        """The stacked SCNI gradient operators of the matrix-free products (built on first use)."""
         if self._main is None:
             self._main = ProductForm([self.scni.G])
+        return self._main
+
+    def tangent_operator(self, state: State) -> MatrixFreeTangent:
+        """The consistent tangent of :meth:`stiffness` as a matrix-free operator (3N × 3N), N/cm."""
         C = (self.scni.volume[:, None, None] * state.A.reshape(-1, 9, 9))
         vol = None if self.volumetric is None else (self.volumetric, state.vol)
-        return MatrixFreeTangent(self._main, C, stab=self.stab, penalty=self.penalty, volumetric=vol)
+        return MatrixFreeTangent(self.product_form, C, stab=self.stab, penalty=self.penalty, volumetric=vol)
+
+    def displacement_moduli(self, state: State) -> np.ndarray:
+        """V_L A_L per node (N, 9, 9), N·cm, of the displacement block K_d of the mixed form: the
+        tangent plus, at the nodes of held single-node patches, their volumetric term."""
+        A = state.A if self.volumetric is None else self._held_volumetric(state, state.A)
+        return self.scni.volume[:, None, None] * A.reshape(-1, 9, 9)
 
     def preconditioner_matrix(self, state: State, reach: int = 2, volumetric: str = "nodal") -> sp.bsr_matrix:
         """Filtered positive stand-in of the tangent for preconditioning (BSR, 3N × 3N), N/cm.

@@ -1,20 +1,22 @@
 """Sparse products on every core.
 
 The matrix-free tangent multiplies CSR matrices with three columns at a time (the displacement
-components of every node), and the region solves with single vectors. Both run on all threads:
+components of every node), the region solves also with single vectors. Both run on all threads:
 
-- three columns: a compiled kernel, rows in parallel, three running sums per row. SciPy's
-  ``csr_matvecs`` loops over the columns inside every non-zero instead and takes twice the time
-  of this kernel on one thread (26M non-zeros, 220k rows: 0.098 s against 0.023 s on two threads);
+- three columns: a compiled kernel, rows in parallel on numba's threads, three running sums per
+  row. SciPy's ``csr_matvecs`` loops over the columns inside every non-zero instead; on a banded
+  matrix of 26 M non-zeros in 220k rows it took 0.098 s against 0.023 s for this kernel on two
+  threads;
 - vectors: SciPy's ``csr_matvec``, which releases the GIL, on row blocks of about equal numbers of
-  non-zeros in a thread pool (0.021 → 0.012 s on two threads; a compiled kernel took 0.018 s).
+  non-zeros in a thread pool (0.021 → 0.012 s on two threads for the same matrix; a compiled
+  kernel took 0.018 s).
 
 Each output row is summed in the same order whatever the number of threads, so products do not
 depend on it, bit for bit. The blocks share the matrix's arrays (no copy).
 
-The number of threads is numba's (:func:`numba.get_num_threads`: all cores, or
-``NUMBA_NUM_THREADS``, which the Dask runner sets to the cores of a worker), divided among the
-processes of an MPI launch.
+Threads: numba's (:func:`numba.get_num_threads`: all cores, or ``NUMBA_NUM_THREADS``, which the
+Dask runner sets to the cores of a worker); the pool divides them among the processes of an MPI
+launch.
 """
 
 from __future__ import annotations

@@ -28,6 +28,9 @@ class RowAssembler:
     system : MechanicalSystem
     owned : (n,) int
         Node indices whose rows are assembled.
+    square : bool
+        Only the diagonal block of the owned nodes (:meth:`block`; ``owned`` sorted), not their
+        whole rows: the pattern and the fill leave out every other column.
 
     Attributes
     ----------
@@ -35,7 +38,7 @@ class RowAssembler:
         Integration cells (= nodes) that enter the owned rows.
     """
 
-    def __init__(self, system, owned: np.ndarray):
+    def __init__(self, system, owned: np.ndarray, square: bool = False):
         scni = system.scni
         n = system.n_nodes
         self.owned = np.asarray(owned, np.int64)
@@ -55,7 +58,10 @@ class RowAssembler:
             self.local_patch = local_patch.ravel().astype(np.int64)
             patches = sp.csr_matrix((np.ones(self.cells.size), (self.local_patch, np.arange(self.cells.size))),
                                     shape=(self.patches.size, self.cells.size))
-        self.asm = Assembler(Sc, patches=patches, rows=self.owned)  # the owned block rows only
+        if square and np.any(np.diff(self.owned) <= 0):
+            raise ValueError("a square RowAssembler needs sorted, distinct owned nodes")
+        self.square = square
+        self.asm = Assembler(Sc, patches=patches, rows=self.owned, square=square)  # the owned block rows only
         self.g = self.asm.on_support([G[self.cells] for G in scni.G])
         self.base = self.asm.zeros()
         keep = sp.diags(mask.astype(float))
@@ -81,6 +87,22 @@ class RowAssembler:
         With ``pressure_free`` (projected volumetric energy): the rows of the displacement block K_d
         of the mixed form instead (:meth:`~pixmuscle.mechanics.solve.MechanicalSystem.stiffness`).
         """
+        return self.asm.matrix(self._data(state, pressure_free)).tocsr()[self._rows]
+
+    def block(self, state, pressure_free: bool = False) -> sp.csr_matrix:
+        """The diagonal block of the owned nodes (``square``): CSR (3n × 3n), dofs 3m + i of the
+        m-th owned node, N/cm; ``pressure_free`` as :meth:`rows`."""
+        if not self.square:
+            raise ValueError("RowAssembler.block needs square=True")
+        asm = self.asm
+        local = np.full(asm.n_nodes, -1, np.int64)
+        local[self.owned] = np.arange(self.owned.size)
+        counts = np.diff(asm.indptr)[self.owned]  # the other block rows are empty
+        indptr = np.concatenate([[0], np.cumsum(counts)])
+        n = 3 * self.owned.size
+        return sp.bsr_matrix((self._data(state, pressure_free), local[asm.indices], indptr), shape=(n, n)).tocsr()
+
+    def _data(self, state, pressure_free: bool) -> np.ndarray:
         data = self.base.copy()
         vol = self.system.volumetric
         pressure_free = pressure_free and vol is not None
@@ -90,4 +112,4 @@ class RowAssembler:
             wv = (vol.volume / vol.vp[vol.patch_of])[self.cells]
             v = self.asm.patch_vectors(self.g, state.vol.a[self.cells], wv, self.local_patch)
             self.asm.fill_patches(v, (vol.vp * vol.kbar)[self.patches], data)
-        return self.asm.matrix(data).tocsr()[self._rows]
+        return data
