@@ -291,3 +291,34 @@ def test_threaded_csr_product_is_the_serial_product_bit_for_bit():
     finally:
         numba.set_num_threads(saved)
     assert ThreadedCSR(A[:10], threads=4).threads == 1  # too small to split
+
+
+def test_threaded_fill_adds_the_same_blocks_as_one_thread():
+    """The fills split the block rows among threads (each adds to its own rows only): the tangent
+    comes out bit for bit as on one thread, for the whole pattern and for the square block of a
+    node subset."""
+    import numba
+
+    m = mask_model(np.ones((10, 10, 8), bool), (0.1, 0.1, 0.25))
+    sup = support_radius(m.spacing, (1.65, 1.65, 1.65))
+    s = build_scni(m.X, m.ijk, m.spacing, sup)
+    S = support_pattern(face_incidence(s.faces, s.volume), s.psi_faces)
+    rng = np.random.default_rng(5)
+    A = rng.standard_normal((m.n_nodes, 3, 3, 3, 3))
+    sub = np.flatnonzero(m.ijk[:, 2] < 4)
+    saved = numba.get_num_threads()
+    out = {}
+    try:
+        for k in sorted({1, saved, 2} & set(range(1, saved + 1))):
+            numba.set_num_threads(k)
+            for name, asm in (("whole", Assembler(S)), ("square", Assembler(S, rows=sub, square=True))):
+                assert 9 * asm.nnzb >= 200_000 or name == "square"
+                data = asm.fill(asm.on_support(s.G), A, s.volume)
+                out.setdefault(name, []).append((len(asm._row_parts()), data))
+    finally:
+        numba.set_num_threads(saved)
+    for name, runs in out.items():
+        for _, data in runs[1:]:
+            assert np.array_equal(data, runs[0][1]), name
+    if saved > 1:
+        assert out["whole"][-1][0] > 1  # the fill did run on several threads

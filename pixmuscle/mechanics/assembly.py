@@ -20,6 +20,8 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 
+from .threaded import MIN_NNZ, run_parts, thread_count
+
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _position(indices, lo, hi, key):  # pragma: no cover - compiled
@@ -244,6 +246,7 @@ class Assembler:
         self.indptr = np.asarray(indptr).astype(it)
         self.indices = np.asarray(indices).astype(it)
         self._rows = None
+        self._parts = None
 
     @property
     def nnzb(self) -> int:
@@ -297,10 +300,25 @@ class Assembler:
         """
         if out is None:
             out = self.zeros()
-        _fill(self.ptr, self.nodes, np.ascontiguousarray(g, dtype=np.float64), np.ascontiguousarray(A, dtype=np.float64),
-              np.ascontiguousarray(w, dtype=np.float64), self.indptr, self.indices, out, self.ijk, self.reach,
-              self.wide, self.keep, self.keepcol)
+        g, A, w = (np.ascontiguousarray(x, dtype=np.float64) for x in (g, A, w))
+        run_parts(lambda keep: _fill(self.ptr, self.nodes, g, A, w, self.indptr, self.indices, out, self.ijk, self.reach,
+                                     self.wide, keep, self.keepcol), self._row_parts())
         return out
+
+    def _row_parts(self) -> list[np.ndarray]:
+        """Row masks of the fills, one per thread: contiguous node ranges of about equal numbers of
+        blocks (within the kept rows). Each thread adds only to its own rows, so the threads of one
+        fill never write to the same block, and the sums do not depend on the number of threads."""
+        k = thread_count()
+        if self._parts is None or len(self._parts) != k:
+            if k == 1 or 9 * self.nnzb < MIN_NNZ:
+                self._parts = [self.keep]
+            else:
+                cuts = np.searchsorted(self.indptr, np.linspace(0, self.nnzb, k + 1)[1:-1])
+                owner = np.searchsorted(cuts, np.arange(self.n_nodes), side="right")
+                base = self.keep if self.keep.size else np.ones(self.n_nodes, np.bool_)
+                self._parts = [base & (owner == t) for t in range(k)]
+        return self._parts
 
     def patch_vectors(self, g: np.ndarray, a: np.ndarray, wv: np.ndarray, patch_of: np.ndarray) -> np.ndarray:
         """Vectors g_p = Σ_{L∈p} wv_L B̃_Lᵀ a_L of the patches on the patch-support layout.
@@ -329,8 +347,9 @@ class Assembler:
 
     def fill_patches(self, v: np.ndarray, coef: np.ndarray, out: np.ndarray) -> np.ndarray:
         """Add Σ_p coef_p g_p g_pᵀ (patch vectors ``v`` from :meth:`patch_vectors`) to block data."""
-        _fill_rank1(self.pptr, self.pnodes, np.ascontiguousarray(v, np.float64), np.ascontiguousarray(coef, np.float64),
-                    self.indptr, self.indices, out, self.ijk, self.reach, self.wide, self.keep, self.keepcol)
+        v, coef = np.ascontiguousarray(v, np.float64), np.ascontiguousarray(coef, np.float64)
+        run_parts(lambda keep: _fill_rank1(self.pptr, self.pnodes, v, coef, self.indptr, self.indices, out, self.ijk,
+                                           self.reach, self.wide, keep, self.keepcol), self._row_parts())
         return out
 
     def block_positions(self, brow: np.ndarray, bcol: np.ndarray, missing: str = "raise") -> np.ndarray:

@@ -147,10 +147,7 @@ class RowProduct:
         self.BhT = ThreadedCSR(Bh[:, nodes].T.tocsr())
 
     def apply(self, C: np.ndarray, Z: np.ndarray) -> np.ndarray:
-        """(K Z)_R for moduli C (Q·N, 9, 9) or already restricted to :attr:`cells` (n_h, 9, 9) and nodal
-        values Z (N, 3); returns (n, 3)."""
-        if C.shape[0] != self.n_cells:
-            C = C[self.cells]
+        """(K Z)_R, (n, 3), for the moduli of :attr:`cells` C (n_h, 9, 9) and nodal values Z (N, 3)."""
         g = np.ascontiguousarray((self.Bh @ Z).reshape(1, 3, self.n_cells, 3))
         t = np.empty_like(g)
         _contract(np.ascontiguousarray(C), g, self.n_cells, t)

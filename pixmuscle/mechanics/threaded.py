@@ -129,3 +129,13 @@ class ThreadedCSR:
         for f in [_pool(self.threads).submit(part, b) for b in self._blocks]:
             f.result()
         return out
+
+
+def run_parts(task, parts: list) -> None:
+    """``task(part)`` for every part, on the thread pool when there are several (``task`` must
+    release the GIL to gain: a numba function compiled with ``nogil``), on this thread otherwise."""
+    if len(parts) == 1:
+        task(parts[0])
+        return
+    for f in [_pool(len(parts)).submit(task, p) for p in parts]:
+        f.result()

@@ -144,11 +144,9 @@ class KrylovAMGSolver(LinearSolver):
     def _build(self):
         t0 = time.perf_counter()
         self._M = None  # release the old hierarchy before the new one is built (peak memory)
-        Kp = self._stand_in()
-        self.info["preconditioner_nnz_per_row"] = Kp.nnz / Kp.shape[0]
         aggregates = voxel_aggregates(self.ijk, self.aggregate) if self.amg == "pyamg" else None
-        self._M = v_cycle(self.amg, Kp, self.B, aggregates, self.theta)
-        del Kp
+        self._M = v_cycle(self.amg, self._stand_in, self.B, aggregates, self.theta)  # made and released inside
+        self.info["preconditioner_nnz_per_row"] = self._M.nnz_per_row
         self.info["levels"] = self._M.levels
         self.info["operator_complexity"] = self._M.operator_complexity
         self.info["preconditioner_builds"] += 1

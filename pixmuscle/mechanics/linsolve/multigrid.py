@@ -92,7 +92,7 @@ class SmoothedAggregation:
 
     Parameters
     ----------
-    K : sparse (3N × 3N)
+    K : sparse (3N × 3N), or a function of no arguments that returns it
         Symmetric positive definite stand-in of the tangent, N/cm.
     B : (3N, 6) float
         Rigid-body modes.
@@ -105,6 +105,9 @@ class SmoothedAggregation:
     def __init__(self, K, B: np.ndarray, aggregates: sp.csr_matrix, theta: float = 0.1):
         import pyamg
 
+        if callable(K):
+            K = K()
+        self.nnz_per_row = K.nnz / K.shape[0]
         ml = pyamg.smoothed_aggregation_solver(
             K, B=B, symmetry="symmetric", strength=("symmetric", {"theta": theta}),
             aggregate=[("predefined", {"AggOp": aggregates})] + ["standard"] * 10,
@@ -124,19 +127,33 @@ class BoomerAMG:
 
     Parameters
     ----------
-    K : sparse (3N × 3N)
-        Symmetric positive definite stand-in of the tangent, N/cm, 3 × 3 blocks per node.
+    K : sparse (3N × 3N), or a function of no arguments that returns it
+        Symmetric positive definite stand-in of the tangent, N/cm, 3 × 3 blocks per node (BSR
+        with 3 × 3 blocks, or CSR). Given as a function, the stand-in is made here and released as
+        soon as PETSc holds its copy, before hypre's set-up: the set-up's peak memory then does
+        not hold it (0.6 GB on the 74k leg).
     """
 
     def __init__(self, K):
         from petsc4py import PETSc
 
-        A = sp.csr_matrix(K)
-        A.sort_indices()
+        if callable(K):
+            K = K()
         idx = PETSc.IntType
-        self._A = PETSc.Mat().createAIJ(size=A.shape, bsize=3, comm=PETSc.COMM_SELF,
-                                        csr=(A.indptr.astype(idx, copy=False), A.indices.astype(idx, copy=False), A.data))
-        del A
+        self.nnz_per_row = K.nnz / K.shape[0]
+        self.shape = K.shape
+        if sp.isspmatrix_bsr(K) and K.blocksize == (3, 3):  # blocks straight into PETSc: no CSR copy
+            self._A = PETSc.Mat().createBAIJ(size=K.shape, bsize=3, comm=PETSc.COMM_SELF,
+                                             csr=(K.indptr.astype(idx, copy=False), K.indices.astype(idx, copy=False),
+                                                  K.data.reshape(-1)))
+        else:
+            A = sp.csr_matrix(K)
+            A.sort_indices()
+            self._A = PETSc.Mat().createAIJ(size=A.shape, bsize=3, comm=PETSc.COMM_SELF,
+                                            csr=(A.indptr.astype(idx, copy=False), A.indices.astype(idx, copy=False),
+                                                 A.data))
+            del A
+        del K
         # in place into hypre's own matrix type, which BoomerAMG then uses without a second copy (one
         # copy of the stand-in less: 0.23 GB at 21k nodes); the conversion forgets the 3 × 3 node
         # blocks that the nodal coarsening needs
@@ -152,7 +169,6 @@ class BoomerAMG:
         pc.setUp()
         self._pc = pc
         self._x, self._y = self._A.createVecs()
-        self.shape = K.shape
         self.levels = None  # hypre does not report them through petsc4py
         self.operator_complexity = None
 
@@ -169,7 +185,8 @@ class BoomerAMG:
 
 
 def v_cycle(amg: str, K, B: np.ndarray, aggregates: sp.csr_matrix, theta: float):
-    """One V-cycle of the multigrid ``amg`` (``hypre`` or ``pyamg``, after :func:`resolve`) built on ``K``."""
+    """One V-cycle of the multigrid ``amg`` (``hypre`` or ``pyamg``, after :func:`resolve`) built on ``K``
+    (a matrix, or a function that makes it: :class:`BoomerAMG`); its ``nnz_per_row`` is ``K``'s."""
     if amg == "hypre":
         return BoomerAMG(K)
     return SmoothedAggregation(K, B, aggregates, theta)
