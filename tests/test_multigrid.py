@@ -65,3 +65,24 @@ def test_boomeramg_takes_blocks_or_rows_alike():
     M = multigrid.BoomerAMG(lambda: K.tobsr(blocksize=(3, 3)))
     assert np.array_equal(M @ v, ref)
     assert M.nnz_per_row == K.nnz / K.shape[0]
+
+
+def test_drop_weak_blocks_keeps_the_diagonal_and_the_strong_blocks():
+    """Blocks weaker than tol √(‖K_aa‖ ‖K_bb‖) go, the rest stay as they were: checked block by
+    block against the dense matrix."""
+    K, _ = _vector_laplacian(5)
+    rng = np.random.default_rng(2)
+    K = (K + sp.random(K.shape[0], K.shape[0], density=0.05, random_state=3) * 0.05).tobsr(blocksize=(3, 3))
+    K.data *= rng.uniform(0.5, 1.5, K.data.shape[0])[:, None, None]
+    assert multigrid.drop_weak_blocks(K, 0.0) is K
+    D = K.toarray()
+    n = D.shape[0] // 3
+    blk = lambda a, b: D[3 * a:3 * a + 3, 3 * b:3 * b + 3]  # noqa: E731
+    for tol in (0.05, 0.3):
+        F = multigrid.drop_weak_blocks(K, tol).toarray()
+        for a in range(n):
+            for b in range(n):
+                strong = np.linalg.norm(blk(a, b)) >= tol * np.sqrt(np.linalg.norm(blk(a, a)) * np.linalg.norm(blk(b, b)))
+                expect = blk(a, b) if (a == b or strong) else 0.0
+                assert np.array_equal(F[3 * a:3 * a + 3, 3 * b:3 * b + 3], np.broadcast_to(expect, (3, 3)))
+        assert 0 < np.count_nonzero(F) < np.count_nonzero(D)

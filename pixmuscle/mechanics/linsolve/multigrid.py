@@ -184,6 +184,47 @@ class BoomerAMG:
                 o.destroy()
 
 
+def drop_weak_blocks(K: sp.bsr_matrix, tol: float) -> sp.bsr_matrix:
+    """The stand-in without its weak couplings: every off-diagonal 3 × 3 block with
+    ‖K_ab‖_F < tol √(‖K_aa‖_F ‖K_bb‖_F) is dropped, the diagonal blocks are kept.
+
+    Most blocks of the ±2-voxel stand-in are weak: on the 74k leg ``tol`` = 0.005 keeps 144 of
+    335 non-zeros per row, and BoomerAMG on what is left cycles in 0.22 s instead of 0.38 s and
+    sets up in 29 s instead of 49 s, for 56 FGMRES iterations instead of 53 on the first Newton
+    system (21k: 129 of 319, 42 iterations against 39). The V-cycle's cost is its fine level,
+    proportional to the non-zeros. Adding the dropped blocks to the diagonal (to keep diagonal
+    dominance) costs far more iterations (161 against 39 at 21k with ``tol`` = 0.01), so nothing is
+    added; the V-cycle only preconditions FGMRES, which does not need it symmetric positive.
+
+    Parameters
+    ----------
+    K : BSR (3N × 3N), 3 × 3 blocks
+    tol : float
+        Relative strength below which a block is dropped; 0 keeps every block.
+
+    Returns
+    -------
+    BSR (3N × 3N)
+
+    References
+    ----------
+    A. Bienz, R. D. Falgout, W. Gropp, L. N. Olson, J. B. Schroder, "Reducing parallel communication
+    in algebraic multigrid through sparsification", SIAM J. Sci. Comput. 38(5), S332–S357, 2016
+    (dropping weak entries of AMG operators).
+    """
+    if tol <= 0.0:
+        return K
+    n = K.shape[0] // 3
+    rows = np.repeat(np.arange(n, dtype=np.int32), np.diff(K.indptr))
+    norm = np.sqrt(np.einsum("kij,kij->k", K.data, K.data))
+    diagonal = rows == K.indices
+    dnorm = np.zeros(n)
+    dnorm[rows[diagonal]] = norm[diagonal]
+    keep = diagonal | (norm >= tol * np.sqrt(dnorm[rows] * dnorm[K.indices]))
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(rows[keep], minlength=n))])
+    return sp.bsr_matrix((K.data[keep], K.indices[keep], indptr), shape=K.shape)
+
+
 def v_cycle(amg: str, K, B: np.ndarray, aggregates: sp.csr_matrix, theta: float):
     """One V-cycle of the multigrid ``amg`` (``hypre`` or ``pyamg``, after :func:`resolve`) built on ``K``
     (a matrix, or a function that makes it: :class:`BoomerAMG`); its ``nnz_per_row`` is ``K``'s."""
