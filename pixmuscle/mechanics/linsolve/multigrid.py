@@ -1,8 +1,9 @@
 r"""Algebraic multigrid V-cycles for the iterative backends: pyamg smoothed aggregation, or hypre
 BoomerAMG through petsc4py.
 
-Both take the filtered stand-in of the tangent (BSR, 3 × 3 blocks, ~300 non-zeros per row) and
-return an object whose ``@`` applies one V-cycle. ``cg_amg`` and ``mixed_amg`` choose with their
+Both take the filtered stand-in of the tangent (BSR, 3 × 3 blocks, ~300 non-zeros per row; in
+``mixed_amg`` ~140 after :func:`drop_weak_blocks`) and return an object whose ``@`` applies one
+V-cycle. ``cg_amg`` and ``mixed_amg`` choose with their
 option ``amg``: ``auto`` takes BoomerAMG where petsc4py (with hypre) imports and pyamg otherwise.
 
 Why two. pyamg is pure pip and always there; its set-up (smoothed prolongators, Galerkin
@@ -189,9 +190,9 @@ def drop_weak_blocks(K: sp.bsr_matrix, tol: float) -> sp.bsr_matrix:
     ‖K_ab‖_F < tol √(‖K_aa‖_F ‖K_bb‖_F) is dropped, the diagonal blocks are kept.
 
     Most blocks of the ±2-voxel stand-in are weak: on the 74k leg ``tol`` = 0.005 keeps 144 of
-    335 non-zeros per row, and BoomerAMG on what is left cycles in 0.22 s instead of 0.38 s and
-    sets up in 29 s instead of 49 s, for 56 FGMRES iterations instead of 53 on the first Newton
-    system (21k: 129 of 319, 42 iterations against 39). The V-cycle's cost is its fine level,
+    335 non-zeros per row, and BoomerAMG on what is left cycles in 0.22 s instead of 0.38 s for 56
+    FGMRES iterations instead of 53 on the first Newton system (21k: 129 of 319, 0.049 s against
+    0.098 s, 42 iterations against 39; docs/performance.md, "Weak blocks"). The V-cycle's cost is its fine level,
     proportional to the non-zeros. Adding the dropped blocks to the diagonal (to keep diagonal
     dominance) costs far more iterations (161 against 39 at 21k with ``tol`` = 0.01), so nothing is
     added; the V-cycle only preconditions FGMRES, which does not need it symmetric positive.
