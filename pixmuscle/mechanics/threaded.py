@@ -126,8 +126,7 @@ class ThreadedCSR:
             lo, hi, blk = block
             out[lo:hi] = blk @ X
 
-        for f in [_pool(self.threads).submit(part, b) for b in self._blocks]:
-            f.result()
+        run_parts(part, self._blocks)
         return out
 
 
