@@ -282,6 +282,8 @@ def test_threaded_csr_product_is_the_serial_product_bit_for_bit():
         T = ThreadedCSR(A, threads=threads)
         assert T.threads == threads
         assert np.array_equal(T @ x, A @ x)
+        for _, _, blk in T._blocks:  # the row blocks hold no second copy of the matrix
+            assert np.shares_memory(blk.data, A.data) and np.shares_memory(blk.indices, A.indices)
     saved = numba.get_num_threads()
     try:
         for k in sorted({1, saved}):
@@ -322,3 +324,26 @@ def test_threaded_fill_adds_the_same_blocks_as_one_thread():
             assert np.array_equal(data, runs[0][1]), name
     if saved > 1:
         assert out["whole"][-1][0] > 1  # the fill did run on several threads
+
+
+def test_identity_blocks_merge_a_scalar_operator_into_full_and_filtered_patterns():
+    """``Assembler.add_identity_blocks``: M ⊗ I₃ on the pattern, entries outside it dropped — checked
+    dense, entry by entry, on the full pattern (every entry kept) and on a filtered one (reach 1:
+    only the pairs at most one voxel apart per axis)."""
+    import scipy.sparse as sp
+
+    m = mask_model(irregular_mask(8, 5), (0.1, 0.12, 0.25))
+    sup = support_radius(m.spacing, (1.65, 1.65, 1.65))
+    s = build_scni(m.X, m.ijk, m.spacing, sup, face_gradients=False)
+    S = support_pattern(face_incidence(s.faces, s.volume), s.psi_faces)
+    rng = np.random.default_rng(5)
+    M = (S.T @ sp.diags(rng.random(S.shape[0])) @ S).tocsr()  # a symmetric scalar operator on the support pairs
+    M.sort_indices()
+    dense = M.toarray()
+    for reach in (None, 1):
+        asm = Assembler(S, ijk=m.ijk, reach=reach)
+        K = asm.matrix(asm.add_identity_blocks(M, asm.zeros())).toarray()
+        near = np.ones_like(dense, bool) if reach is None else \
+            np.all(np.abs(m.ijk[:, None, :] - m.ijk[None, :, :]) <= reach, axis=2)
+        np.testing.assert_array_equal(K, np.kron(np.where(near, dense, 0.0), np.eye(3)))
+        assert reach is None or np.any(dense[~near] != 0)  # the filter did drop entries

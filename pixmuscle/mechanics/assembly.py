@@ -131,6 +131,25 @@ def _fill_rank1(pptr, pnodes, v, coef, indptr, indices, data, ijk, reach, wide, 
                         data[lo, i, k] += ci * v[bb, k]
 
 
+@numba.njit(cache=True, nogil=True)
+def _add_identity(indptr, indices, mptr, mind, mdata, out):  # pragma: no cover - compiled
+    for r in range(indptr.size - 1):
+        p, end = indptr[r], indptr[r + 1]
+        if p == end:
+            continue
+        for q in range(mptr[r], mptr[r + 1]):
+            c = mind[q]
+            while p < end and indices[p] < c:
+                p += 1
+            if p == end:
+                break
+            if indices[p] == c:
+                v = mdata[q]
+                out[p, 0, 0] += v
+                out[p, 1, 1] += v
+                out[p, 2, 2] += v
+
+
 def _int_dtype(n: int):
     return np.int32 if n < np.iinfo(np.int32).max else np.int64
 
@@ -379,6 +398,17 @@ class Assembler:
         pos = self.block_positions(C.row, C.col, missing="mark" if self.reach >= 0 or self.keep.size else "raise")
         keep = pos >= 0
         np.add.at(out[:, i, k], pos[keep], C.data[keep])
+        return out
+
+    def add_identity_blocks(self, M: sp.csr_matrix, out: np.ndarray) -> np.ndarray:
+        """Add M ⊗ I₃ (M an N × N CSR with sorted column indices) to the block data: K[3I+j, 3J+j] +=
+        M[I, J] for j = 0, 1, 2, for every block (I, J) of the pattern; the entries of M outside the
+        pattern (far pairs of a filtered pattern, rows or columns left out) are dropped. One merge of
+        sorted rows, O(nnz(M) + nnzb)."""
+        M = sp.csr_matrix(M)
+        if not M.has_sorted_indices:
+            M = M.sorted_indices()
+        _add_identity(self.indptr, self.indices, M.indptr, M.indices, M.data, out)
         return out
 
     def align(self, M: sp.spmatrix, out: np.ndarray) -> np.ndarray:

@@ -186,7 +186,9 @@ class ConstantStiffness:
             n = self.n
             B = sp.vstack([sp.csr_matrix(M) for grp in groups for M in grp], format="csr")  # rows (q, J, L)
             w = np.concatenate([c[q * n:(q + 1) * n] for q in range(len(groups)) for _ in groups[q]])
-            self.L = ThreadedCSR((B.T @ sp.diags(w) @ B).tocsr())
+            L = (B.T @ sp.diags(w) @ B).tocsr()
+            L.sort_indices()
+            self.L = ThreadedCSR(L)
         else:
             self.form, self.C = ProductForm(groups), np.ascontiguousarray(C)
 

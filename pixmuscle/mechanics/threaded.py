@@ -99,10 +99,7 @@ class ThreadedCSR:
             cuts = np.searchsorted(A.indptr, np.linspace(0, A.nnz, k + 1)[1:-1])
             bounds = np.unique(np.concatenate([[0], cuts, [A.shape[0]]]))
             for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
-                s, e = A.indptr[lo], A.indptr[hi]
-                blk = sp.csr_matrix((A.data[s:e], A.indices[s:e], A.indptr[lo:hi + 1] - s), shape=(hi - lo, A.shape[1]),
-                                    copy=False)
-                self._blocks.append((int(lo), int(hi), blk))
+                self._blocks.append((int(lo), int(hi), row_view(A, lo, hi)))
         self.threads = max(1, len(self._blocks))
 
     @property
@@ -128,6 +125,17 @@ class ThreadedCSR:
 
         run_parts(part, self._blocks)
         return out
+
+
+def row_view(A: sp.csr_matrix, lo: int, hi: int) -> sp.csr_matrix:
+    """Rows ``lo:hi`` of the CSR ``A`` as a CSR matrix on views of its arrays (only the row pointers
+    are new). SciPy's constructor copies a view that holds less than half of its base
+    (``_prune_array``), which would hold every row block of a threaded product twice."""
+    s, e = A.indptr[lo], A.indptr[hi]
+    blk = sp.csr_matrix((hi - lo, A.shape[1]), dtype=A.dtype)
+    blk.indptr = (A.indptr[lo:hi + 1] - s).astype(A.indices.dtype, copy=False)
+    blk.indices, blk.data = A.indices[s:e], A.data[s:e]
+    return blk
 
 
 def run_parts(task, parts: list) -> None:

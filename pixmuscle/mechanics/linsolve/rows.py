@@ -15,8 +15,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..assembly import Assembler, support_pattern
-from ..scni import face_incidence
+from ..assembly import Assembler
 from ..stabilization import gradient_differences, second_moments, stabilization_modulus
 
 
@@ -44,7 +43,7 @@ class RowAssembler:
         self.owned = np.asarray(owned, np.int64)
         mask = np.zeros(n, bool)
         mask[self.owned] = True
-        S = support_pattern(face_incidence(scni.faces, scni.volume), scni.psi_faces)
+        S = system.support
         touch = np.asarray(S[:, self.owned].sum(axis=1)).ravel() > 0
         vol = system.volumetric
         patches = None
@@ -63,20 +62,22 @@ class RowAssembler:
         self.square = square
         self.asm = Assembler(Sc, patches=patches, rows=self.owned, square=square)  # the owned block rows only
         self.g = self.asm.on_support([G[self.cells] for G in scni.G])
-        self.base = self.asm.zeros()
         keep = sp.diags(mask.astype(float))
-        for j, Kj in enumerate(system.penalty):
+        self._penalty = []  # the owned rows of the penalty stiffness per component
+        for Kj in system.penalty:
             Kr = (keep @ sp.csr_matrix(Kj)).tocsr()
             Kr.eliminate_zeros()
-            self.asm.align_scalar(Kr, j, j, self.base)
-        if system.stab is not None:
+            self._penalty.append(Kr)
+        self._stab = None  # NSNI: the rows of the scalar operator, or (its gradient differences, moduli) on this pattern
+        if system.stab is not None and system.stab.scalar:
+            self._stab = system.stab.L.matrix
+        elif system.stab is not None:
             st = system.stabilization
             As = stabilization_modulus(system.A0, st.modulus)[self.cells]
             H = gradient_differences(scni)
             M = second_moments(scni.volume, scni.spacing)[self.cells]
-            for k in range(3):
-                gk = self.asm.on_support([Hk[self.cells] for Hk in H[k]])
-                self.asm.fill(gk, As, st.coefficient * M[:, k], out=self.base)
+            self._stab = [(self.asm.on_support([Hk[self.cells] for Hk in H[k]]), As, st.coefficient * M[:, k])
+                          for k in range(3)]
         self.volume = np.asarray(scni.volume, float)[self.cells]
         self.system = system
         self._rows = (3 * self.owned[:, None] + np.arange(3)).ravel()
@@ -102,8 +103,20 @@ class RowAssembler:
         n = 3 * self.owned.size
         return sp.bsr_matrix((self._data(state, pressure_free), local[asm.indices], indptr), shape=(n, n)).tocsr()
 
+    def _constant(self) -> np.ndarray:
+        """Block data of the penalty and NSNI rows (made for each assembly, not kept)."""
+        data = self.asm.zeros()
+        for j, Kr in enumerate(self._penalty):
+            self.asm.align_scalar(Kr, j, j, data)
+        if isinstance(self._stab, sp.csr_matrix):
+            self.asm.add_identity_blocks(self._stab, data)
+        elif self._stab is not None:
+            for gk, As, w in self._stab:
+                self.asm.fill(gk, As, w, out=data)
+        return data
+
     def _data(self, state, pressure_free: bool) -> np.ndarray:
-        data = self.base.copy()
+        data = self._constant()
         vol = self.system.volumetric
         pressure_free = pressure_free and vol is not None
         A = self.system._held_volumetric(state, state.A) if pressure_free else state.A
