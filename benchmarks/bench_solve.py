@@ -5,7 +5,8 @@ connective tissue, skin, fat; tibia and fibula are holes) sampled at voxel centr
 Example 2 grid, 0.156 × 0.156 cm in-plane and 0.5 cm between slices. The leg is scaled down for
 the smaller sizes: ~5k nodes = (leg scale 0.50, 8 slices), ~20k = (0.72, 15), ~75k = (1.04, 25,
 the paper's 73,659-node model has 25 slices). Smaller legs hold relatively more fat and
-connective tissue.
+connective tissue. ``295k`` is the 75k leg at the paper's refined resolution, every 0.078125-cm
+pixel in-plane and the same 25 slices (Fig. 9a).
 
 Solve: α 0 → 0.95 in 10 load steps, both ends fixed, bone surfaces fixed in-plane, cubic
 kernel, linear basis, a/h = 1.65, every other setting at its default. Each case runs in its own
@@ -48,7 +49,10 @@ import numpy as np
 
 OUT = pathlib.Path(__file__).parent / "results"
 SPACING = (0.15625, 0.15625, 0.5)
-SIZES = {"1.5k": (0.45, 3), "2k": (0.40, 5), "5k": (0.50, 8), "10k": (0.62, 11), "20k": (0.72, 15), "75k": (1.04, 25)}
+FINE = (0.078125, 0.078125, 0.5)  # the paper's refined model: every pixel, the same slices
+# size → (leg scale, slices[, spacing (cm), SPACING when not given])
+SIZES = {"1.5k": (0.45, 3), "2k": (0.40, 5), "5k": (0.50, 8), "10k": (0.62, 11), "20k": (0.72, 15), "75k": (1.04, 25),
+         "295k": (1.04, 25, FINE)}
 # the records of docs/performance.md; about 2 h in all, 40 min of it the 74k sweep
 DEFAULT_CASES = ["5k:direct", "5k:direct_reuse", "5k:cg_amg", "10k:direct_reuse", "10k:cg_amg", "20k:direct_reuse",
                  "5k:direct_reuse:1e-3", "5k:direct_reuse:1e-2", "5k:cg_amg:1e-2", "5k:cg_amg:1e-2:0.1",
@@ -66,12 +70,13 @@ BACKENDS = {
 }
 
 
-def leg_labels(scale: float, n_slices: int, seed: int = 0):
-    """SYNTHETIC leg label volume (0 background, 1 muscle, 2 connective tissue, 3 fat, 4 bone) and fibres."""
+def leg_labels(scale: float, n_slices: int, spacing=SPACING, seed: int = 0):
+    """SYNTHETIC leg label volume (0 background, 1 muscle, 2 connective tissue, 3 fat, 4 bone) and fibres,
+    sampled at the centres of voxels of ``spacing`` (cm)."""
     from pixmuscle.synth import phantom as ph
     from pixmuscle.synth.leg import LegAnatomy
 
-    h = np.asarray(SPACING)
+    h = np.asarray(spacing)
     rng = np.random.default_rng(seed)
     anat = LegAnatomy((0.0, 0.0), (0.0, (n_slices - 1) * h[2]), rng, leg_scale=scale, fat_cm=0.6 * scale)
     lo, hi = anat.bounding_box()
@@ -154,7 +159,7 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
     return {
         "size": size, "backend": backend, "nodes": model.n_nodes, "dofs": 3 * model.n_nodes,
         "tissue_nodes": {"muscle": int(tissue[1]), "connective_tissue": int(tissue[2]), "fat": int(tissue[3])},
-        "spacing_cm": list(SPACING), "steps": steps, "alpha_to": alpha_to, "status": res.status,
+        "spacing_cm": [float(x) for x in model.spacing], "steps": steps, "alpha_to": alpha_to, "status": res.status,
         "penalty_factor": cfg.penalty.factor, "beta_N_per_cm3": info["beta"],
         "newton_residual_tol": cfg.newton.residual_tol, "newton_energy_tol": cfg.newton.energy_tol,
         "forcing_max": cfg.newton.forcing_max,
@@ -265,7 +270,10 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
     Every tissue's bulk modulus K is multiplied by each of ``scales`` (K/μ ≈ 95, 950, 9,500 for the
     paper's constants), for each variant (volumetric energy, patch, backend); the backend solves
     the system to ``rtol``. A formulation and solver whose iterations stay flat as K/μ grows are
-    robust where the cost of the nearly incompressible tissues comes from. Rows of the shipped
+    robust where the cost of the nearly incompressible tissues comes from. ``krylov_iterations``
+    stop on the condensed residual; for ``mixed_amg`` the row also has ``krylov_iterations_mixed``,
+    the same system solved in mixed form and stopped on the mixed residual, which is the update
+    Newton takes at the defaults (``solve.newton.pressure_update: mixed``). Rows of the shipped
     defaults (:class:`~pixmuscle.mechanics.config.VolumetricConfig`, the backend ``auto`` picks
     above its direct limit) carry ``"default": true``. ``on_row(record)`` is called with the
     record so far after every row (a long run keeps what it measured); ``previous`` rows (an
@@ -305,6 +313,15 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
             except SolverError as exc:
                 status = str(exc).split(":")[1].strip()[:60]
             its = int(solver.info["iterations"])
+            mixed = None  # the update Newton takes at the defaults: the mixed system, stopping on its residual
+            if hasattr(solver, "solve_mixed") and getattr(solver, "_mixed", None) is not None:
+                t = time.perf_counter()
+                try:
+                    solver.solve_mixed(state.r.ravel(), np.zeros(system.volumetric.n_patches), rtol=rtol)
+                    mixed = {"krylov_iterations_mixed": int(solver.info["iterations"]),
+                             "mixed_solve_s": round(time.perf_counter() - t, 1)}
+                except SolverError as exc:
+                    mixed = {"krylov_iterations_mixed": None, "mixed_status": str(exc).split(":")[1].strip()[:60]}
             default = (method == shipped.volumetric.method and backend == AUTO_ITERATIVE and held == shipped.volumetric.held
                        and (patch is None or list(patch) == list(shipped.volumetric.patch)))
             rows.append({"volumetric": method, "patch": None if patch is None else list(patch), "held": held,
@@ -314,7 +331,7 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
                          "schur": getattr(solver, "schur", None), "restart": getattr(solver, "restart", None),
                          "probe_spacing": getattr(solver, "probe_spacing", None),
                          "krylov_iterations": its, "status": status, "solve_s": round(time.perf_counter() - t, 1),
-                         "setup_s": round(setup, 1), "default": bool(default)})
+                         "setup_s": round(setup, 1), **(mixed or {}), "default": bool(default)})
             print(json.dumps(rows[-1]), flush=True)
             same = ("volumetric", "patch", "held", "backend", "bulk_scale")
             for r in previous:  # an earlier row of a case measured again now is no longer the shipped default
@@ -365,8 +382,8 @@ def infsup(size: str, penalty: float | None, patch=(1, 1, 3), held: str = "press
     n, vol = model.n_nodes, system.volumetric
     press = np.ones(vol.n_patches, bool) if held in ("pressure", "patch") else ~vol.held
     if held in ("pressure", "patch"):  # K_d without any patch term
-        asm, base = system.assembler(None, patches=False)
-        data = base.copy()
+        asm = system.assembler(None, patches=False)
+        data = system.constant_stiffness(asm)
         asm.fill(system._g, state.A, system.scni.volume, out=data)
         Kd = asm.matrix(data).tocsr()
     else:
@@ -621,6 +638,8 @@ def main(argv=None):
     p.add_argument("--tables", action="store_true",
                    help="only rewrite bench_solve.md (and the exponents in bench_solve.json) from bench_solve.json")
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)  # internal: run one case, print JSON
+    p.add_argument("--log", default=None, metavar="FILE",
+                   help="append the solver's progress (load steps, Newton iterations) of each case to FILE")
     p.add_argument("--probe", default=None, metavar="SIZE",
                    help="measure one Newton system at SIZE (no sweep); writes results/bench_solve_probe_SIZE.json")
     p.add_argument("--probe-direct", default=None, metavar="SIZE",
@@ -700,6 +719,11 @@ def main(argv=None):
             print(json.dumps(res, indent=1))
             return 0
     if args.one:
+        if args.log:
+            import logging
+
+            logging.basicConfig(filename=args.log, level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+            logging.getLogger("pixmuscle").setLevel(logging.DEBUG)  # every Newton iteration
         size, backend, tol, eta = parse_case(args.one)
         res = run_case(size, backend, args.steps, args.alpha, args.penalty, tol, eta)
         res.update(case=args.one, label=case_label(backend, tol, eta))
@@ -725,6 +749,8 @@ def main(argv=None):
         cmd = [sys.executable, __file__, "--one", case, "--steps", str(args.steps), "--alpha", str(args.alpha)]
         if args.penalty is not None:
             cmd += ["--penalty", str(args.penalty)]
+        if args.log:
+            cmd += ["--log", args.log]
         t0 = time.perf_counter()
         load0 = os.getloadavg()
         proc = subprocess.run(cmd, capture_output=True, text=True)
