@@ -51,12 +51,20 @@ def _fill(ptr, nodes, g, A, w, indptr, indices, data, ijk, reach, wide, keep, ke
     restricted = keep.shape[0] > 0
     square = keepcol.shape[0] > 0
     t = np.empty((3, 3, 3))
+    width = 0
+    for L in range(nc):
+        width = max(width, ptr[L + 1] - ptr[L])
+    # where each row of the cell's nodes stands in the pattern: the columns nb come in increasing
+    # order (sorted support), so every row's position only moves forward (a merge, no search)
+    cur = np.empty(width, np.int64)
     for L in range(nc):
         s = ptr[L]
         e = ptr[L + 1]
         wL = w[L]
         if wL == 0.0:
             continue
+        for aa in range(s, e):
+            cur[aa - s] = indptr[nodes[aa]]
         for bb in range(s, e):
             nb = nodes[bb]
             if square and not keepcol[nb]:
@@ -81,7 +89,10 @@ def _fill(ptr, nodes, g, A, w, indptr, indices, data, ijk, reach, wide, keep, ke
                     continue
                 if filtered and _far(ijk, wide, na, nb, reach):
                     continue
-                lo = _position(indices, indptr[na], indptr[na + 1] - 1, nb)
+                lo = cur[aa - s]
+                while indices[lo] < nb:  # nb is in row na
+                    lo += 1
+                cur[aa - s] = lo
                 for i in range(3):
                     for k in range(3):
                         data[lo, i, k] += h0 * t[i, 0, k] + h1 * t[i, 1, k] + h2 * t[i, 2, k]
@@ -118,13 +129,15 @@ def _fill_rank1(pptr, pnodes, v, coef, indptr, indices, data, ijk, reach, wide, 
             na = pnodes[aa]
             if restricted and not keep[na]:
                 continue
+            lo = indptr[na]  # the patch's nodes are sorted: a merge along row na
             for bb in range(s, e):
                 nb = pnodes[bb]
                 if square and not keepcol[nb]:
                     continue
                 if filtered and _far(ijk, wide, na, nb, reach):
                     continue
-                lo = _position(indices, indptr[na], indptr[na + 1] - 1, nb)
+                while indices[lo] < nb:
+                    lo += 1
                 for i in range(3):
                     ci = c * v[aa, i]
                     for k in range(3):
