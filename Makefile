@@ -41,6 +41,7 @@ bench-scale: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[bench]"
 	$(BIN)/python benchmarks/bench_locking.py
 	$(BIN)/python benchmarks/bench_vs_fe.py
+	$(BIN)/python benchmarks/bench_vs_fe.py --append --cases leg5k:pixmuscle leg5k:felupe:1x1x1 leg5k:felupe:1x1x2 leg5k:felupe:2x2x2 --threads 1
 	$(BIN)/python benchmarks/bench_newton.py
 	$(BIN)/python benchmarks/bench_solve.py --conditioning 2k
 	$(BIN)/python benchmarks/bench_solve.py --conditioning 5k
@@ -48,6 +49,7 @@ bench-scale: $(STAMP)
 	for s in 1.5k 5k; do for p in "1,1,3 --held pressure" "2,2,3 --held pressure" "2,2,3 --held displacement" "2,2,3 --held patch"; do 	  $(BIN)/python benchmarks/bench_solve.py --infsup $$s --patch $$p || exit 1; done; done
 	$(BIN)/python benchmarks/bench_solve.py --infsup 10k --patch 2,2,3 --held displacement --thresholds 0.01 0.05
 	$(BIN)/python benchmarks/bench_solve.py --infsup 20k --patch 2,2,3 --held patch
+	$(BIN)/python benchmarks/bench_solve.py --conditioning 5k --append --variants projected:2,2,3:mixed_amg:patch
 	$(BIN)/python benchmarks/bench_solve.py --conditioning 20k --append --variants projected:2,2,3:mixed_amg:patch
 	$(BIN)/python benchmarks/bench_solve.py --conditioning 75k --append --variants projected:2,2,3:mixed_amg:patch --scales 1
 	$(BIN)/python benchmarks/bench_solve.py --inertia 5k
