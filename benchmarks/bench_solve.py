@@ -24,6 +24,12 @@ Usage::
     .venv/bin/python benchmarks/bench_solve.py                       # the DEFAULT_CASES below
     .venv/bin/python benchmarks/bench_solve.py --cases 5k:cg_amg 5k:direct 20k:direct_reuse
     .venv/bin/python benchmarks/bench_solve.py --append --cases 75k:cg_amg:1e-2   # Newton tolerance 1e-2
+    .venv/bin/python benchmarks/bench_solve.py --append --cases 295k:auto --checkpoint ckpt   # resumable
+
+With ``--checkpoint DIR`` each sweep writes its converged load steps to DIR as it goes; the same
+command after a kill (a session's end) resumes it from the last converged step. The record then
+lists the runs under ``segments`` (wall time up to each run's last converged step, its own build
+and set-up included) and ``sweep_s`` is their sum; its Krylov counts are the last run's.
 
 Backends (``--cases SIZE:BACKEND``): ``direct`` (PARDISO when MKL is installed, else SuperLU; factorised at
 every Newton iteration), ``direct_reuse`` (the default: kept factors precondition CG), ``superlu``, ``cg_amg``. An optional third
@@ -144,18 +150,27 @@ def final_residuals(newton: dict) -> np.ndarray:
 
 
 def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: float | None,
-             newton_tol: float | None = None, eta_max: float | None = None) -> dict:
+             newton_tol: float | None = None, eta_max: float | None = None, checkpoint: pathlib.Path | None = None) -> dict:
+    """One sweep; with ``checkpoint`` (a file stem) its converged load steps are written as it goes
+    (``STEM.checkpoint``, :mod:`pixmuscle.io.checkpoint`, and ``STEM.segments.json``: the wall time,
+    peak memory and linear iterations of each run so far), so that the same call after a kill
+    resumes from the last converged step. The record then sums the runs (``segments``)."""
     from pixmuscle.mechanics.solve import solve
 
     model, cfg = leg_case(size, penalty, steps=steps, activation={"from": 0.0, "to": alpha_to}, solver=BACKENDS[backend],
                           **newton_tolerances(newton_tol, eta_max))
     t1 = time.perf_counter()
-    res = solve(model, cfg)
+    resume, earlier, save = (None, [], None) if checkpoint is None else _sweep_checkpoint(checkpoint, model, cfg, t1)
+    res = solve(model, cfg, resume=resume, on_checkpoint=save)
     wall = time.perf_counter() - t1
     info = res.info
     n_it = int(np.sum(res.iterations))
     tissue = np.bincount(model.tissue, minlength=4)
-    lin = info["linear_iterations"]
+    lin = info["linear_iterations"]  # of this run only (a resumed sweep's earlier runs are not counted)
+    if checkpoint is not None:
+        for path in _checkpoint_files(checkpoint):
+            path.unlink(missing_ok=True)
+    wall += sum(seg["wall_s"] for seg in earlier)
     return {
         "size": size, "backend": backend, "nodes": model.n_nodes, "dofs": 3 * model.n_nodes,
         "tissue_nodes": {"muscle": int(tissue[1]), "connective_tissue": int(tissue[2]), "fat": int(tissue[3])},
@@ -168,10 +183,10 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
         "assembly_s_per_iteration": round(info["assembly_s"] / max(info["n_assembly"], 1), 3),
         "n_assembly": int(info["n_assembly"]),
         "linear_setup_s_total": round(info["linear_setup_s"], 2),
-        "linear_s_per_iteration": round((info["linear_setup_s"] + info["linear_solve_s"]) / max(n_it, 1), 3),
+        "linear_s_per_iteration": round((info["linear_setup_s"] + info["linear_solve_s"]) / max(len(info["linear_iterations"]), 1), 3),
         "cg_iterations_total": int(np.sum(lin)) if backend != "direct" else None,
         "cg_iterations_per_newton": round(float(np.mean(lin)), 1) if backend != "direct" else None,
-        "cg_s_per_iteration": round(info["linear_solve_s"] / max(np.sum(lin), 1), 4) if backend == "cg_amg" else None,
+        "cg_s_per_iteration": round(info["linear_solve_s"] / max(np.sum(info["linear_iterations"]), 1), 4) if backend == "cg_amg" else None,
         "preconditioner_builds": info.get("preconditioner_builds"),
         "amg": info.get("amg"),
         "factorizations": info.get("factorizations"),
@@ -190,8 +205,51 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
         "defaults": (backend == "auto" and newton_tol is None and eta_max is None and penalty is None
                      and steps == 10 and alpha_to == 0.95),
         "force_z_max_N": [float(f) for f in res.force("z_max")],
-        "peak_rss_GB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2),
+        "peak_rss_GB": max([peak_rss_gb()] + [seg["peak_rss_GB"] for seg in earlier]),
+        # a resumed sweep: each run's wall time (its own build and set-up included), steps and peak memory
+        # (the iteration counts above are then the last run's only)
+        "segments": earlier
+                    + [{"wall_s": round(time.perf_counter() - t1, 1), "steps_done": len(res.iterations) - 1,
+                        "peak_rss_GB": peak_rss_gb()}] if earlier else None,
     }
+
+
+def peak_rss_gb() -> float:
+    """Peak resident memory of this process, GB."""
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2)
+
+
+def _checkpoint_files(stem: pathlib.Path) -> tuple[pathlib.Path, pathlib.Path]:
+    """The checkpoint and the runs' log of a sweep checkpointed at ``stem``."""
+    return stem.parent / (stem.name + ".checkpoint"), stem.parent / (stem.name + ".segments.json")
+
+
+def _sweep_checkpoint(stem: pathlib.Path, model, cfg, t_start: float):
+    """(resume records or None, earlier runs, on_checkpoint) of a sweep checkpointed at ``stem``."""
+    import hashlib
+
+    from pixmuscle import __version__
+    from pixmuscle.io.checkpoint import load_checkpoint, save_checkpoint
+    from pixmuscle.store import config_hash
+
+    key = hashlib.sha256(json.dumps({"solve": config_hash(cfg), "nodes": model.n_nodes, "version": __version__},
+                                    sort_keys=True).encode()).hexdigest()
+    ckpt, segs = _checkpoint_files(stem)
+    resume, earlier = None, []
+    if ckpt.exists() and segs.exists():
+        got = load_checkpoint(ckpt)
+        seg = json.loads(segs.read_text())
+        if got.key == key and seg["key"] == key and got.records:
+            resume, earlier = got.records, seg["segments"]
+
+    def save(records):
+        save_checkpoint(ckpt, records, key=key, n_steps=cfg.steps)
+        now = {"wall_s": round(time.perf_counter() - t_start, 1), "steps_done": records[-1].step, "peak_rss_GB": peak_rss_gb()}
+        tmp = segs.parent / (segs.name + ".tmp")
+        tmp.write_text(json.dumps({"key": key, "segments": earlier + [now]}))
+        tmp.replace(segs)
+
+    return resume, earlier, save
 
 
 def probe(size: str, penalty: float | None) -> dict:
@@ -640,6 +698,9 @@ def main(argv=None):
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)  # internal: run one case, print JSON
     p.add_argument("--log", default=None, metavar="FILE",
                    help="append the solver's progress (load steps, Newton iterations) of each case to FILE")
+    p.add_argument("--checkpoint", default=None, metavar="DIR",
+                   help="write each sweep's converged load steps to DIR as it goes; the same command after a kill "
+                        "resumes every unfinished case from its last converged step")
     p.add_argument("--probe", default=None, metavar="SIZE",
                    help="measure one Newton system at SIZE (no sweep); writes results/bench_solve_probe_SIZE.json")
     p.add_argument("--probe-direct", default=None, metavar="SIZE",
@@ -725,7 +786,11 @@ def main(argv=None):
             logging.basicConfig(filename=args.log, level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
             logging.getLogger("pixmuscle").setLevel(logging.DEBUG)  # every Newton iteration
         size, backend, tol, eta = parse_case(args.one)
-        res = run_case(size, backend, args.steps, args.alpha, args.penalty, tol, eta)
+        stem = None
+        if args.checkpoint:
+            pathlib.Path(args.checkpoint).mkdir(parents=True, exist_ok=True)
+            stem = pathlib.Path(args.checkpoint) / (args.one.replace(":", "_") + f"_{args.steps}steps")
+        res = run_case(size, backend, args.steps, args.alpha, args.penalty, tol, eta, checkpoint=stem)
         res.update(case=args.one, label=case_label(backend, tol, eta))
         print("RESULT " + json.dumps(res), flush=True)
         return 0
@@ -751,6 +816,8 @@ def main(argv=None):
             cmd += ["--penalty", str(args.penalty)]
         if args.log:
             cmd += ["--log", args.log]
+        if args.checkpoint:
+            cmd += ["--checkpoint", args.checkpoint]
         t0 = time.perf_counter()
         load0 = os.getloadavg()
         proc = subprocess.run(cmd, capture_output=True, text=True)
