@@ -153,7 +153,7 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
              newton_tol: float | None = None, eta_max: float | None = None, checkpoint: pathlib.Path | None = None) -> dict:
     """One sweep; with ``checkpoint`` (a file stem) its converged load steps are written as it goes
     (``STEM.checkpoint``, :mod:`pixmuscle.io.checkpoint`, and ``STEM.segments.json``: the wall time,
-    peak memory and linear iterations of each run so far), so that the same call after a kill
+    steps and peak memory of each run so far), so that the same call after a kill
     resumes from the last converged step. The record then sums the runs (``segments``)."""
     from pixmuscle.mechanics.solve import solve
 
@@ -165,6 +165,7 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
     wall = time.perf_counter() - t1
     info = res.info
     n_it = int(np.sum(res.iterations))
+    n_run = int(np.sum(res.iterations[len(resume or ()):]))  # Newton iterations of this run
     tissue = np.bincount(model.tissue, minlength=4)
     lin = info["linear_iterations"]  # of this run only (a resumed sweep's earlier runs are not counted)
     if checkpoint is not None:
@@ -183,10 +184,10 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
         "assembly_s_per_iteration": round(info["assembly_s"] / max(info["n_assembly"], 1), 3),
         "n_assembly": int(info["n_assembly"]),
         "linear_setup_s_total": round(info["linear_setup_s"], 2),
-        "linear_s_per_iteration": round((info["linear_setup_s"] + info["linear_solve_s"]) / max(len(info["linear_iterations"]), 1), 3),
+        "linear_s_per_iteration": round((info["linear_setup_s"] + info["linear_solve_s"]) / max(n_run, 1), 3),
         "cg_iterations_total": int(np.sum(lin)) if backend != "direct" else None,
         "cg_iterations_per_newton": round(float(np.mean(lin)), 1) if backend != "direct" else None,
-        "cg_s_per_iteration": round(info["linear_solve_s"] / max(np.sum(info["linear_iterations"]), 1), 4) if backend == "cg_amg" else None,
+        "cg_s_per_iteration": round(info["linear_solve_s"] / max(np.sum(lin), 1), 4) if backend == "cg_amg" else None,
         "preconditioner_builds": info.get("preconditioner_builds"),
         "amg": info.get("amg"),
         "factorizations": info.get("factorizations"),
