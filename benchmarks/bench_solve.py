@@ -6,7 +6,8 @@ Example 2 grid, 0.156 × 0.156 cm in-plane and 0.5 cm between slices. The leg is
 the smaller sizes: ~5k nodes = (leg scale 0.50, 8 slices), ~20k = (0.72, 15), ~75k = (1.04, 25,
 the paper's 73,659-node model has 25 slices). Smaller legs hold relatively more fat and
 connective tissue. ``295k`` is the 75k leg at the paper's refined resolution, every 0.078125-cm
-pixel in-plane and the same 25 slices (Fig. 9a).
+pixel in-plane and the same 25 slices (Fig. 9a); ``20k-fine`` and ``75k-fine`` are legs half as
+wide on those pixels with the node counts of ``20k`` and ``75k``.
 
 Solve: α 0 → 0.95 in 10 load steps, both ends fixed, bone surfaces fixed in-plane, cubic
 kernel, linear basis, a/h = 1.65, every other setting at its default. Each case runs in its own
@@ -58,7 +59,9 @@ SPACING = (0.15625, 0.15625, 0.5)
 FINE = (0.078125, 0.078125, 0.5)  # the paper's refined model: every pixel, the same slices
 # size → (leg scale, slices[, spacing (cm), SPACING when not given])
 SIZES = {"1.5k": (0.45, 3), "2k": (0.40, 5), "5k": (0.50, 8), "10k": (0.62, 11), "20k": (0.72, 15), "75k": (1.04, 25),
-         "295k": (1.04, 25, FINE)}
+         "295k": (1.04, 25, FINE),
+         # the 20k and 75k node counts on the refined pixels (a leg half as wide): the fine pixels' own growth in N
+         "20k-fine": (0.36, 15, FINE), "75k-fine": (0.52, 25, FINE)}
 # the records of docs/performance.md; about 2 h in all, 40 min of it the 74k sweep
 DEFAULT_CASES = ["5k:direct", "5k:direct_reuse", "5k:cg_amg", "10k:direct_reuse", "10k:cg_amg", "20k:direct_reuse",
                  "5k:direct_reuse:1e-3", "5k:direct_reuse:1e-2", "5k:cg_amg:1e-2", "5k:cg_amg:1e-2:0.1",
