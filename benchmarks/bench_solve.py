@@ -234,7 +234,7 @@ def _sweep_checkpoint(stem: pathlib.Path, model, cfg, t_start: float):
 
     from pixmuscle import __version__
     from pixmuscle.io.checkpoint import load_checkpoint, save_checkpoint
-    from pixmuscle.store import config_hash
+    from pixmuscle.store import config_hash, write_bytes_atomic
 
     key = hashlib.sha256(json.dumps({"solve": config_hash(cfg), "nodes": model.n_nodes, "version": __version__},
                                     sort_keys=True).encode()).hexdigest()
@@ -249,9 +249,7 @@ def _sweep_checkpoint(stem: pathlib.Path, model, cfg, t_start: float):
     def save(records):
         save_checkpoint(ckpt, records, key=key, n_steps=cfg.steps)
         now = {"wall_s": round(time.perf_counter() - t_start, 1), "steps_done": records[-1].step, "peak_rss_GB": peak_rss_gb()}
-        tmp = segs.parent / (segs.name + ".tmp")
-        tmp.write_text(json.dumps({"key": key, "segments": earlier + [now]}))
-        tmp.replace(segs)
+        write_bytes_atomic(segs, json.dumps({"key": key, "segments": earlier + [now]}).encode())
 
     return resume, earlier, save
 
