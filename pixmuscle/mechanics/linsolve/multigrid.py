@@ -14,10 +14,18 @@ the same 21,169-node stand-in in 1.1 s against ~15 s and cycles in 0.19 s agains
 region solves), for 50 FGMRES iterations against 47 on the first Newton system of the leg
 (docs/performance.md, "Multigrid: BoomerAMG and pyamg").
 
-BoomerAMG settings (hypre's names): HMIS coarsening of the nodal strength matrix (``nodal`` 6:
-the strength between two nodes is taken from their whole 3 × 3 block, one of hypre's block
-measures) with strength threshold 0.5 — the three displacement components of a node are coarsened
-together, as elasticity needs; extended+i interpolation with
+BoomerAMG settings (hypre's names): HMIS coarsening with strength threshold 0.5, each
+displacement component on its own (the "unknown" approach, ``nodal_coarsen`` 0 with three
+functions per node: only couplings between like components count, and each component gets its
+own coarse grids). Coarsening the three components of a node together (``nodal_coarsen`` 6, the
+whole 3 × 3 block as strength) is the textbook choice for elasticity, but it leaves the slow
+modes of the leg on pixels finer in-plane than the slice spacing, axial displacement fields
+smooth in-plane that vary along the slices (likely because the components' couplings across
+slices differ: the fibres stiffen the axial one), to the Krylov method: on the first Newton system
+of the leg at 0.078 cm pixels, 43 FGMRES iterations against 54 at 21k nodes and 69 against 80 at
+74k, at the same set-up and cycle time (docs/performance.md, "Multigrid: BoomerAMG and pyamg");
+strength thresholds 0.25 and 0.7, P_max 6, the node ordering and the Frobenius-norm block
+strength (``nodal_coarsen`` 1, 117) gave nothing better. Extended+i interpolation with
 at most 4 entries per row; one forward hybrid Gauss–Seidel/Jacobi sweep before the coarse-grid
 correction and one backward sweep after it, Gaussian elimination on the coarsest level, so the
 cycle is a fixed symmetric operator (CG in ``cg_amg`` needs that). Operator complexity is ~1.1,
@@ -26,8 +34,9 @@ symmetric-SOR/Jacobi) costs twice as much per cycle for the same or a few per ce
 iterations — on the first Newton system of the leg 39 and 50 FGMRES iterations at 5k and 21k
 nodes against 39 and 54 with the one-way sweeps, but 0.050 and 0.200 s against 0.039 and 0.136 s
 per cycle with the region solves, 15 % less solve time and 24 % less set-up at 21k
-(docs/performance.md, "Multigrid: BoomerAMG and pyamg"). Rigid-body interpolation (hypre's
-vector interpolation) gave no fewer iterations on the leg and a slower set-up, so it is off.
+(docs/performance.md, "Multigrid: BoomerAMG and pyamg"; these two comparisons with nodal
+coarsening). Rigid-body interpolation (hypre's vector interpolation) gave no fewer iterations on
+the leg and a slower set-up, so it is off.
 
 References
 ----------
@@ -54,7 +63,7 @@ AMG_CHOICES = ("auto", "hypre", "pyamg")
 
 _PREFIX = "pixmuscleamg_"
 #: PETSc options of the BoomerAMG cycle (names without the dash); ``petsc_mixed`` uses them too
-BOOMERAMG_OPTIONS = {"pc_hypre_boomeramg_nodal_coarsen": 6, "pc_hypre_boomeramg_strong_threshold": 0.5,
+BOOMERAMG_OPTIONS = {"pc_hypre_boomeramg_nodal_coarsen": 0, "pc_hypre_boomeramg_strong_threshold": 0.5,
               "pc_hypre_boomeramg_coarsen_type": "HMIS", "pc_hypre_boomeramg_interp_type": "ext+i",
               "pc_hypre_boomeramg_P_max": 4, "pc_hypre_boomeramg_relax_type_down": "SOR/Jacobi",
               "pc_hypre_boomeramg_relax_type_up": "backward-SOR/Jacobi",
@@ -157,7 +166,7 @@ class BoomerAMG:
         del K
         # in place into hypre's own matrix type, which BoomerAMG then uses without a second copy (one
         # copy of the stand-in less: 0.23 GB at 21k nodes); the conversion forgets the 3 × 3 node
-        # blocks that the nodal coarsening needs
+        # blocks, which tell hypre the three functions per node
         self._A.convert("hypre")
         self._A.setBlockSize(3)
         pc = PETSc.PC().create(comm=PETSc.COMM_SELF)
