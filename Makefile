@@ -54,7 +54,7 @@ bench-scale: $(STAMP)
 	$(BIN)/python benchmarks/bench_solve.py --conditioning 75k --append --variants projected:2,2,3:mixed_amg:patch --scales 1
 	$(BIN)/python benchmarks/bench_solve.py --inertia 5k
 	$(BIN)/python benchmarks/bench_solve.py --inertia 20k
-	$(BIN)/python benchmarks/bench_tolerance.py --size 5k --tols 1e-6 1e-4 1e-3 1e-2
+	$(BIN)/python benchmarks/bench_tolerance.py --size 5k --tols 1e-6 1e-4 1e-4:1e-5 1e-4:1e-4 1e-3 1e-2
 	$(BIN)/python benchmarks/bench_tolerance.py --size 20k --tols 1e-4
 	$(BIN)/python benchmarks/bench_petsc_mixed.py
 	$(BIN)/python benchmarks/bench_patch.py
