@@ -7,7 +7,7 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from pixmuscle.mechanics.linsolve import multigrid, pcg, rigid_body_modes, voxel_aggregates
+from pixmuscle.mechanics.linsolve import amg_processes, multigrid, pcg, rigid_body_modes, voxel_aggregates
 
 needs_hypre = pytest.mark.skipif(not multigrid.hypre_available(), reason="petsc4py with hypre is not installed")
 
@@ -65,6 +65,58 @@ def test_boomeramg_takes_blocks_or_rows_alike():
     M = multigrid.BoomerAMG(lambda: K.tobsr(blocksize=(3, 3)))
     assert np.array_equal(M @ v, ref)
     assert M.nnz_per_row == K.nnz / K.shape[0]
+
+
+needs_workers = pytest.mark.skipif(not (multigrid.hypre_available() and amg_processes.available()),
+                                   reason="petsc4py with hypre and mpi4py are not installed")
+
+
+@needs_workers
+def test_boomeramg_on_two_processes_preconditions_cg_to_the_direct_solution():
+    """BoomerAMG set up and cycled on this process and a spawned MPI worker (amg_processes: 2) is a
+    symmetric positive V-cycle on the whole vector that makes CG converge as fast as on one process,
+    to the sparse direct solution; the worker holds about half the rows and reports its memory."""
+    K, _ = _vector_laplacian()
+    M = multigrid.v_cycle("hypre", lambda: K.tobsr(blocksize=(3, 3)), None, None, 0.1, processes=2)
+    assert isinstance(M, amg_processes.SpreadBoomerAMG) and M.nnz_per_row == K.nnz / K.shape[0]
+    assert 0.4 < M.bounds[1] / (K.shape[0] // 3) < 0.6
+    rng = np.random.default_rng(0)
+    v, w = rng.standard_normal((2, K.shape[0]))
+    assert np.isclose(v @ (M @ w), w @ (M @ v), rtol=1e-10)
+    assert v @ (M @ v) > 0
+    b = rng.standard_normal(K.shape[0])
+    x, its, status = pcg(K, b, M, 1e-10, 200)
+    _, serial, _ = pcg(K, b, multigrid.BoomerAMG(K), 1e-10, 200)
+    assert status == "converged" and its <= serial + 3
+    assert np.allclose(x, spla.spsolve(K.tocsc(), b), rtol=0, atol=1e-8 * np.abs(x).max())
+    assert amg_processes.group(2) is M._workers  # one group per process, reused by every hierarchy
+    (kb,) = amg_processes.workers_peak_rss_kb()
+    assert kb > 10_000
+
+
+def test_more_processes_need_hypre():
+    from pixmuscle.errors import InputError
+
+    with pytest.raises(InputError, match="solve.solver.amg_processes"):
+        multigrid.resolve("pyamg", 2)
+    assert multigrid.resolve("pyamg", 1) == "pyamg"
+
+
+@needs_workers
+def test_a_run_with_workers_ends_cleanly():
+    """A process that spawned BoomerAMG workers exits at once and with status 0 (the workers are
+    stopped and disconnected at exit), also when it ends with an error."""
+    import subprocess
+    import sys
+
+    code = ("import numpy as np, scipy.sparse as sp; from pixmuscle.mechanics.linsolve import multigrid; "
+            "K = sp.kron(sp.diags([-1.0, 2.1, -1.0], [-1, 0, 1], shape=(60, 60)), sp.identity(3)).tobsr(blocksize=(3, 3)); "
+            "M = multigrid.v_cycle('hypre', K, None, None, 0.1, processes=2); print(float((M @ np.ones(180)).sum()) > 0); ")
+    ok = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0 and ok.stdout.strip() == "True", ok.stderr
+    failed = subprocess.run([sys.executable, "-c", code + "raise SystemExit('stop here')"], capture_output=True,
+                            text=True, timeout=120)
+    assert failed.returncode == 1 and "stop here" in failed.stderr
 
 
 def test_drop_weak_blocks_keeps_the_diagonal_and_the_strong_blocks():

@@ -316,13 +316,16 @@ def test_every_backend_gives_the_direct_solution():
                 "superlu_reuse": {"backend": "direct", "engine": "superlu"},
                 "cg_amg": {"backend": "cg_amg", "amg": "pyamg"},
                 "mixed_amg_pyamg": {"backend": "mixed_amg", "amg": "pyamg"}}
+    from pixmuscle.mechanics.linsolve import amg_processes, petsc
+
     if multigrid.hypre_available():
         variants["cg_amg_hypre"] = {"backend": "cg_amg", "amg": "hypre"}
         variants["mixed_amg_hypre"] = {"backend": "mixed_amg", "amg": "hypre"}
+        if amg_processes.available():  # BoomerAMG on this process and a spawned worker
+            variants["mixed_amg_hypre_2p"] = {"backend": "mixed_amg", "amg": "hypre", "amg_processes": 2}
     if pardiso.available():
         variants["pardiso"] = {"backend": "direct", "engine": "pardiso", "reuse_factorization": False}
         variants["pardiso_reuse"] = {"backend": "direct", "engine": "pardiso", "reuse_factorization": True}
-    from pixmuscle.mechanics.linsolve import petsc
 
     for name in sorted(set(BACKENDS.names()) - {"direct", "cg_amg"}):  # auto, optional and test-defined backends
         if name.startswith("petsc") and not petsc.available():

@@ -48,6 +48,7 @@ class CGAMGOptions(Iterative):
     rebuild_cost: int = field(default=100, metadata={"range": (1, None), "doc": "what a build of the AMG hierarchy costs, in Krylov iterations: the hierarchy is rebuilt once the iterations beyond its rate right after the last build add up to this many (within a solve too). Counted in iterations, not seconds, so that a run repeats itself exactly"})
     give_up: float = field(default=4.0, metadata={"gt": 0, "doc": "a solve with a hierarchy that has not yet converged a solve stops after give_up × (the last measured iterations per decade) × decades + rebuild_cost iterations: such a system is far harder than the earlier ones (an overshooting Newton update), and Newton does better to cut the load increment back"})
     amg: str = field(default="auto", metadata={"choices": AMG_CHOICES, "doc": "the multigrid: `hypre` (BoomerAMG through petsc4py, compiled: on the 21k leg a 14× faster AMG set-up and a 1.8× faster cycle than pyamg), `pyamg` (smoothed aggregation, always installed), `auto` (hypre where petsc4py with hypre is installed, else pyamg)"})
+    amg_processes: int = field(default=1, metadata={"range": (1, None), "doc": "processes BoomerAMG runs on: this one and amg_processes − 1 MPI workers it spawns (mpi4py, no mpiexec needed; hypre only). Each set-up and V-cycle then runs on that many cores; the rest of the run stays in one process (linsolve/amg_processes.py)"})
 
 
 @BACKENDS.register("cg_amg", options=CGAMGOptions)
@@ -79,6 +80,8 @@ class KrylovAMGSolver(LinearSolver):
         rate (below).
     amg : {"auto", "hypre", "pyamg"}
         The multigrid (:func:`.multigrid.resolve`).
+    amg_processes : int
+        Processes BoomerAMG runs on (:mod:`.amg_processes`); more than 1 needs hypre.
 
     Notes
     -----
@@ -111,9 +114,10 @@ class KrylovAMGSolver(LinearSolver):
 
     def __init__(self, X, ijk, rtol: float = 1e-8, maxiter: int = 2000, reach: int = 2, aggregate=(3, 3, 1),
                  theta: float = 0.1, restart: int = 100, rebuild_cost: int = 100, give_up: float = 4.0,
-                 amg: str = "auto"):
+                 amg: str = "auto", amg_processes: int = 1):
         super().__init__()
-        self.amg = resolve(amg)
+        self.amg = resolve(amg, amg_processes)
+        self.amg_processes = amg_processes
         self.rebuild_cost = rebuild_cost
         self.give_up = give_up
         self.restart = restart
@@ -145,7 +149,7 @@ class KrylovAMGSolver(LinearSolver):
         t0 = time.perf_counter()
         self._M = None  # release the old hierarchy before the new one is built (peak memory)
         aggregates = voxel_aggregates(self.ijk, self.aggregate) if self.amg == "pyamg" else None
-        self._M = v_cycle(self.amg, self._stand_in, self.B, aggregates, self.theta)  # made and released inside
+        self._M = v_cycle(self.amg, self._stand_in, self.B, aggregates, self.theta, self.amg_processes)  # made and released inside
         self.info["preconditioner_nnz_per_row"] = self._M.nnz_per_row
         self.info["levels"] = self._M.levels
         self.info["operator_complexity"] = self._M.operator_complexity
@@ -267,8 +271,9 @@ class KrylovAMGSolver(LinearSolver):
         self._rate_last = None if np.isnan(last) else float(last)
 
     def statistics(self) -> dict:
-        """Name, ``amg`` (the multigrid), ``preconditioner_builds``, ``krylov_iterations`` (all solves) and
-        ``indefinite_solves`` (solves finished by FGMRES after negative curvature in CG)."""
-        return super().statistics() | {"amg": self.amg, "preconditioner_builds": self.info["preconditioner_builds"],
+        """Name, ``amg`` (the multigrid) and ``amg_processes``, ``preconditioner_builds``, ``krylov_iterations``
+        (all solves) and ``indefinite_solves`` (solves finished by FGMRES after negative curvature in CG)."""
+        return super().statistics() | {"amg": self.amg, "amg_processes": self.amg_processes,
+                                       "preconditioner_builds": self.info["preconditioner_builds"],
                                        "krylov_iterations": self.info["krylov_iterations"],
                                        "indefinite_solves": self.info["indefinite_solves"]}

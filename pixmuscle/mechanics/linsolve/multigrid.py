@@ -38,6 +38,11 @@ per cycle with the region solves, 15 % less solve time and 24 % less set-up at 2
 coarsening). Rigid-body interpolation (hypre's vector interpolation) gave no fewer iterations on
 the leg and a slower set-up, so it is off.
 
+hypre runs on one core per process. ``amg_processes`` > 1 (option of ``cg_amg``, ``mixed_amg``
+and ``auto``) sets up and cycles each hierarchy on this process and spawned MPI workers
+(:mod:`.amg_processes`): on the leg at 0.078 cm pixels (74k nodes) a V-cycle takes 0.17 s on two
+processes against 0.25 s on one, inside the run (docs/performance.md, "BoomerAMG on two processes").
+
 References
 ----------
 P. Vaněk, J. Mandel, M. Brezina, "Algebraic multigrid by smoothed aggregation for second and
@@ -56,7 +61,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...errors import InputError
-from .petsc import INSTALL_HINT, set_options
+from .amg_processes import SpreadBoomerAMG, group, hypre_pc
+from .amg_processes import available as amg_processes_available
+from .petsc import INSTALL_HINT
 
 #: choices of the ``amg`` option of the iterative backends
 AMG_CHOICES = ("auto", "hypre", "pyamg")
@@ -87,12 +94,18 @@ def hypre_available() -> bool:
     return True
 
 
-def resolve(amg: str) -> str:
-    """The multigrid ``amg`` stands for here: ``auto`` is ``hypre`` where it is installed, else ``pyamg``."""
+def resolve(amg: str, processes: int = 1) -> str:
+    """The multigrid ``amg`` stands for here: ``auto`` is ``hypre`` where it is installed, else ``pyamg``;
+    ``processes`` > 1 (:mod:`.amg_processes`) needs hypre and mpi4py."""
     if amg == "auto":
-        return "hypre" if hypre_available() else "pyamg"
+        amg = "hypre" if hypre_available() or processes > 1 else "pyamg"
     if amg == "hypre" and not hypre_available():
         raise InputError(f"solve.solver.amg: hypre needs petsc4py built against a PETSc with hypre; {INSTALL_HINT}")
+    if processes > 1:
+        if amg != "hypre":
+            raise InputError(f"solve.solver.amg_processes: {processes} processes need amg: hypre (or auto), not {amg}")
+        if not amg_processes_available():
+            raise InputError(f"solve.solver.amg_processes: {processes} processes need mpi4py; {INSTALL_HINT}")
     return amg
 
 
@@ -167,18 +180,7 @@ class BoomerAMG:
         # in place into hypre's own matrix type, which BoomerAMG then uses without a second copy (one
         # copy of the stand-in less: 0.23 GB at 21k nodes); the conversion forgets the 3 × 3 node
         # blocks, which tell hypre the three functions per node
-        self._A.convert("hypre")
-        self._A.setBlockSize(3)
-        pc = PETSc.PC().create(comm=PETSc.COMM_SELF)
-        pc.setOptionsPrefix(_PREFIX)
-        pc.setOperators(self._A)
-        pc.setType("hypre")
-        pc.setHYPREType("boomeramg")
-        set_options(_PREFIX, BOOMERAMG_OPTIONS, None)
-        pc.setFromOptions()
-        pc.setUp()
-        self._pc = pc
-        self._x, self._y = self._A.createVecs()
+        self._A, self._pc, self._x, self._y = hypre_pc(self._A, _PREFIX, BOOMERAMG_OPTIONS)
         self.levels = None  # hypre does not report them through petsc4py
         self.operator_complexity = None
 
@@ -235,9 +237,13 @@ def drop_weak_blocks(K: sp.bsr_matrix, tol: float) -> sp.bsr_matrix:
     return sp.bsr_matrix((K.data[keep], K.indices[keep], indptr), shape=K.shape)
 
 
-def v_cycle(amg: str, K, B: np.ndarray, aggregates: sp.csr_matrix, theta: float):
+def v_cycle(amg: str, K, B: np.ndarray, aggregates: sp.csr_matrix, theta: float, processes: int = 1):
     """One V-cycle of the multigrid ``amg`` (``hypre`` or ``pyamg``, after :func:`resolve`) built on ``K``
-    (a matrix, or a function that makes it: :class:`BoomerAMG`); its ``nnz_per_row`` is ``K``'s."""
+    (a matrix, or a function that makes it: :class:`BoomerAMG`); its ``nnz_per_row`` is ``K``'s.
+    ``processes`` > 1: BoomerAMG on this process and ``processes`` − 1 spawned MPI workers
+    (:mod:`.amg_processes`; ``K`` in BSR with 3 × 3 blocks)."""
     if amg == "hypre":
+        if processes > 1:
+            return SpreadBoomerAMG(K, group(processes), _PREFIX, BOOMERAMG_OPTIONS)
         return BoomerAMG(K)
     return SmoothedAggregation(K, B, aggregates, theta)

@@ -1,0 +1,268 @@
+r"""BoomerAMG on several processes from one serial run: MPI workers spawned on first use.
+
+hypre runs on one core per MPI process (Debian's hypre has no OpenMP), and in ``mixed_amg`` its
+V-cycle is most of a Krylov iteration. With ``solve.solver.amg_processes: P`` (P > 1) the process
+of the run spawns P − 1 workers (``MPI_Comm_spawn``, from a singleton: no ``mpiexec`` needed) and
+joins them in one communicator; each BoomerAMG hierarchy is then set up and cycled on all P
+processes, rank 0 (this process) holding the first block of rows. Everything else of the run
+stays in this process. A V-cycle sends each worker its slice of the vector and takes its slice of
+the result back; between cycles a worker sleeps in a poll of at most 1 ms, so that it leaves its
+core to the run's numba threads.
+
+Rows are cut into contiguous blocks of whole nodes with about equal non-zeros: the nodes are
+numbered slice by slice, so the blocks are slabs. A hierarchy on P processes is not the one on
+one process (hypre's hybrid Gauss–Seidel is Jacobi across ranks, and the coarsening sees the cut),
+so iteration counts and results at the solver tolerances differ slightly from P = 1; a run
+repeats itself for a given P.
+
+The workers end with the run (an ``atexit`` hook sends them ``stop``); a worker that dies takes
+the MPI job, and with it the run, down, loudly.
+"""
+
+from __future__ import annotations
+
+import atexit
+import itertools
+import resource
+import sys
+import time
+
+import numpy as np
+import scipy.sparse as sp
+
+_CMD, _DATA = 11, 12
+_CHUNK = 1 << 26  # elements per message: MPI counts are int
+_group = None
+_keys = itertools.count()
+
+
+def available() -> bool:
+    """True when mpi4py imports (the workers need it, and petsc4py with hypre)."""
+    try:
+        import mpi4py  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+class WorkerGroup:
+    """This process (rank 0) and ``size`` − 1 spawned workers, one communicator.
+
+    Parameters
+    ----------
+    size : int
+        Processes in all, ≥ 2.
+    """
+
+    def __init__(self, size: int):
+        from mpi4py import MPI
+
+        self._inter = MPI.COMM_SELF.Spawn(sys.executable, args=["-m", __name__], maxprocs=size - 1)
+        self.comm = self._inter.Merge(high=False)
+        self.size = size
+        self.open = True
+        atexit.register(self.close)
+
+    def command(self, rank: int, *msg) -> None:
+        self.comm.send(msg, dest=rank, tag=_CMD)
+
+    def peak_rss_kb(self) -> list[int]:
+        """Each worker's peak resident memory so far, kB (Linux ``ru_maxrss``)."""
+        out = []
+        for rank in range(1, self.size):
+            self.command(rank, "rss")
+            out.append(int(self.comm.recv(source=rank, tag=_DATA)))
+        return out
+
+    def close(self) -> None:
+        """Stop the workers and leave the communicator (idempotent)."""
+        if not self.open:
+            return
+        self.open = False
+        for rank in range(1, self.size):
+            self.command(rank, "stop")
+        self.comm.Free()
+        self._inter.Disconnect()
+
+
+def group(size: int) -> WorkerGroup:
+    """The worker group of this process with ``size`` processes in all (spawned on first use; a group
+    of another size is closed first)."""
+    global _group
+    if _group is None or not _group.open or _group.size != size:
+        if _group is not None:
+            _group.close()
+        _group = WorkerGroup(size)
+    return _group
+
+
+def workers_peak_rss_kb() -> list[int]:
+    """Peak resident memory of each worker of this process's group, kB; empty without workers."""
+    return _group.peak_rss_kb() if _group is not None and _group.open else []
+
+
+def send_array(comm, a: np.ndarray, rank: int) -> None:
+    a = np.ascontiguousarray(a).reshape(-1)
+    comm.send((a.dtype.str, a.size), dest=rank, tag=_DATA)
+    for lo in range(0, a.size, _CHUNK):
+        comm.Send(a[lo:lo + _CHUNK], dest=rank, tag=_DATA)
+
+
+def recv_array(comm, rank: int = 0) -> np.ndarray:
+    dtype, size = comm.recv(source=rank, tag=_DATA)
+    a = np.empty(size, dtype=np.dtype(dtype))
+    for lo in range(0, size, _CHUNK):
+        comm.Recv(a[lo:lo + _CHUNK], source=rank, tag=_DATA)
+    return a
+
+
+def row_blocks(indptr: np.ndarray, parts: int) -> np.ndarray:
+    """Boundaries (parts + 1,) of contiguous block-row ranges with about equal non-zeros."""
+    n = indptr.size - 1
+    cuts = np.searchsorted(indptr, np.arange(1, parts) * (indptr[-1] / parts))
+    return np.concatenate([[0], np.clip(cuts, 0, n), [n]]).astype(np.int64)
+
+
+def hypre_matrix(comm, indptr, indices, data, n_local: int, n_total: int):
+    """This rank's block rows (BSR arrays of 3 × 3 blocks, global block columns) as a PETSc matrix on ``comm``."""
+    from petsc4py import PETSc
+
+    idx = PETSc.IntType
+    return PETSc.Mat().createBAIJ(size=((3 * n_local, 3 * n_total), (3 * n_local, 3 * n_total)), bsize=3,
+                                  comm=comm, csr=(np.asarray(indptr, idx), np.asarray(indices, idx),
+                                                  np.asarray(data).reshape(-1)))
+
+
+def hypre_pc(A, prefix: str, options: dict):
+    """BoomerAMG on the processes of ``A`` (converted in place to hypre's matrix type): PC and work vectors."""
+    from petsc4py import PETSc
+
+    from .petsc import set_options
+
+    A.convert("hypre")
+    A.setBlockSize(3)
+    pc = PETSc.PC().create(comm=A.getComm())
+    pc.setOptionsPrefix(prefix)
+    pc.setOperators(A)
+    pc.setType("hypre")
+    pc.setHYPREType("boomeramg")
+    set_options(prefix, options, None)
+    pc.setFromOptions()
+    pc.setUp()
+    x, y = A.createVecs()
+    return A, pc, x, y
+
+
+class SpreadBoomerAMG:
+    """One BoomerAMG V-cycle per ``@``, set up and applied on the processes of a :class:`WorkerGroup`.
+
+    Parameters
+    ----------
+    K : BSR (3N × 3N) with 3 × 3 blocks, or a function of no arguments that returns it
+        Stand-in of the tangent, N/cm; given as a function, it is released once the processes hold
+        their rows, before hypre's set-up.
+    workers : WorkerGroup
+    prefix, options
+        PETSc options prefix and BoomerAMG options (:data:`.multigrid.BOOMERAMG_OPTIONS`).
+    """
+
+    def __init__(self, K, workers: WorkerGroup, prefix: str, options: dict):
+        from petsc4py import PETSc
+
+        if callable(K):
+            K = K()
+        if not (sp.isspmatrix_bsr(K) and K.blocksize == (3, 3)):
+            K = sp.bsr_matrix(K, blocksize=(3, 3))
+        self._workers = workers
+        self._key = next(_keys)
+        self.nnz_per_row = K.nnz / K.shape[0]
+        self.levels = None
+        self.operator_complexity = None
+        comm = workers.comm
+        nb = K.shape[0] // 3
+        self.bounds = row_blocks(K.indptr, workers.size)
+        for rank in range(1, workers.size):
+            b0, b1 = self.bounds[rank], self.bounds[rank + 1]
+            p0, p1 = K.indptr[b0], K.indptr[b1]
+            workers.command(rank, "setup", self._key, int(b1 - b0), nb, prefix, options)
+            send_array(comm, K.indptr[b0:b1 + 1] - p0, rank)
+            send_array(comm, K.indices[p0:p1], rank)
+            send_array(comm, K.data[p0:p1], rank)
+        b1 = self.bounds[1]
+        p1 = K.indptr[b1]
+        A = hypre_matrix(PETSc.Comm(comm), K.indptr[:b1 + 1], K.indices[:p1], K.data[:p1], int(b1), nb)
+        self.shape = K.shape
+        del K
+        self._A, self._pc, self._x, self._y = hypre_pc(A, prefix, options)
+        self._n0 = 3 * int(b1)
+
+    def __matmul__(self, v: np.ndarray) -> np.ndarray:
+        v = np.ascontiguousarray(v, dtype=float)
+        comm = self._workers.comm
+        out = np.empty_like(v)
+        for rank in range(1, self._workers.size):
+            lo, hi = 3 * self.bounds[rank], 3 * self.bounds[rank + 1]
+            self._workers.command(rank, "apply", self._key)
+            comm.Send(v[lo:hi], dest=rank, tag=_DATA)
+        self._x.setArray(v[: self._n0])
+        self._pc.apply(self._x, self._y)
+        out[: self._n0] = self._y.getArray()
+        for rank in range(1, self._workers.size):
+            lo, hi = 3 * self.bounds[rank], 3 * self.bounds[rank + 1]
+            comm.Recv(out[lo:hi], source=rank, tag=_DATA)
+        return out
+
+    def __del__(self):
+        workers = getattr(self, "_workers", None)
+        if workers is not None and workers.open:
+            for rank in range(1, workers.size):
+                workers.command(rank, "free", self._key)
+        for obj in ("_pc", "_A", "_x", "_y"):
+            o = getattr(self, obj, None)
+            if o is not None:
+                o.destroy()
+
+
+def _serve() -> None:
+    """A worker's loop: set up, apply and free hierarchies on rank 0's commands until ``stop``."""
+    from mpi4py import MPI
+    from petsc4py import PETSc
+
+    parent = MPI.Comm.Get_parent()
+    comm = parent.Merge(high=True)
+    held = {}
+    while True:
+        nap = 5e-5  # s; doubles up to 1 ms while no command comes: a cycle waits ≤ 1 ms, an idle worker ~1 % of a core
+        while not comm.Iprobe(source=0, tag=_CMD):
+            time.sleep(nap)
+            nap = min(2.0 * nap, 1e-3)
+        cmd, *args = comm.recv(source=0, tag=_CMD)
+        if cmd == "setup":
+            key, n_local, n_total, prefix, options = args
+            indptr, indices, data = (recv_array(comm) for _ in range(3))
+            A = hypre_matrix(PETSc.Comm(comm), indptr, indices, data, n_local, n_total)
+            del indptr, indices, data
+            held[key] = hypre_pc(A, prefix, options)
+        elif cmd == "apply":
+            A, pc, x, y = held[args[0]]
+            buf = np.empty(x.getLocalSize())
+            comm.Recv(buf, source=0, tag=_DATA)
+            x.setArray(buf)
+            pc.apply(x, y)
+            comm.Send(np.ascontiguousarray(y.getArray()), dest=0, tag=_DATA)
+        elif cmd == "free":
+            for o in held.pop(args[0], ())[::-1]:
+                o.destroy()
+        elif cmd == "rss":
+            comm.send(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, dest=0, tag=_DATA)
+        elif cmd == "stop":
+            break
+    for objs in held.values():
+        for o in objs[::-1]:
+            o.destroy()
+    comm.Free()
+    parent.Disconnect()
+
+
+if __name__ == "__main__":
+    _serve()
