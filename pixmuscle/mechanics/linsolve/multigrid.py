@@ -40,8 +40,9 @@ the leg and a slower set-up, so it is off.
 
 hypre runs on one core per process. ``amg_processes`` > 1 (option of ``cg_amg``, ``mixed_amg``
 and ``auto``) sets up and cycles each hierarchy on this process and spawned MPI workers
-(:mod:`.amg_processes`): on the leg at 0.078 cm pixels (74k nodes) a V-cycle takes 0.17 s on two
-processes against 0.25 s on one, inside the run (docs/performance.md, "BoomerAMG on two processes").
+(:mod:`.amg_processes`): the 74k leg's whole sweep takes 342 s on two processes against 402 s
+on one, the refined 295k model's 47 min against 67 min; at 21k nodes two do not pay
+(docs/performance.md, "BoomerAMG on two processes").
 
 References
 ----------
