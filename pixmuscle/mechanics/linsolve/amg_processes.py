@@ -30,6 +30,8 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
+from ...errors import SolverError
+
 _CMD, _DATA = 11, 12
 _CHUNK = 1 << 26  # elements per message: MPI counts are int
 _group = None
@@ -57,7 +59,11 @@ class WorkerGroup:
     def __init__(self, size: int):
         from mpi4py import MPI
 
-        self._inter = MPI.COMM_SELF.Spawn(sys.executable, args=["-m", __name__], maxprocs=size - 1)
+        try:
+            self._inter = MPI.COMM_SELF.Spawn(sys.executable, args=["-m", __name__], maxprocs=size - 1)
+        except MPI.Exception as err:
+            raise SolverError(f"solve.solver.amg_processes: could not start {size - 1} MPI worker(s) for BoomerAMG "
+                              f"({err}; MPI's own message above says why); amg_processes: 1 needs none") from None
         self.comm = self._inter.Merge(high=False)
         self.size = size
         self.open = True

@@ -57,6 +57,7 @@ preconditioners", SIAM J. Matrix Anal. Appl. 27(4), 1019–1039, 2006 (HMIS coar
 from __future__ import annotations
 
 import functools
+import os
 
 import numpy as np
 import scipy.sparse as sp
@@ -97,7 +98,11 @@ def hypre_available() -> bool:
 
 def resolve(amg: str, processes: int = 1) -> str:
     """The multigrid ``amg`` stands for here: ``auto`` is ``hypre`` where it is installed, else ``pyamg``;
-    ``processes`` > 1 (:mod:`.amg_processes`) needs hypre and mpi4py."""
+    ``processes`` > 1 (:mod:`.amg_processes`) needs hypre, mpi4py and as many cores."""
+    cores = len(os.sched_getaffinity(0))
+    if processes > cores:
+        raise InputError(f"solve.solver.amg_processes: {processes} processes, but this run has {cores} cores: "
+                         f"each BoomerAMG process needs a core of its own (at most {cores} here)")
     if amg == "auto":
         amg = "hypre" if hypre_available() or processes > 1 else "pyamg"
     if amg == "hypre" and not hypre_available():
