@@ -24,10 +24,10 @@ from .outdir import prepare_output_dir
 #: bytes per node and stored state of a results file: u, d (3 each), Cauchy stress (6), max principal (1), float64
 RESULT_BYTES_PER_NODE_STEP = 13 * 8
 #: the rough cost of one load step: ``SECONDS_PER_STEP_REF * (n_nodes / NODES_REF) ** STEP_TIME_EXPONENT``,
-#: fitted to two measured sweeps on 2 cores: 60 s for 10 steps at 5,460 nodes (docs/performance.md) and
-#: 15–25 min per step at 68,120 nodes (Example 2's coarse model with cg_amg and 1 × 1 × 3 patches, the
-#: defaults then; docs/examples.md)
-SECONDS_PER_STEP_REF, NODES_REF, STEP_TIME_EXPONENT = 6.0, 5460, 2.1
+#: a least-squares fit in log-log to the whole sweeps at the defaults on 2 cores (benchmarks/results/
+#: bench_solve.json, ``"defaults": true``: 5,460 to 295,073 nodes, 47 s to 67 min for 10 steps); each
+#: within a factor 1.5 of the fit
+SECONDS_PER_STEP_REF, NODES_REF, STEP_TIME_EXPONENT = 3.4, 5460, 1.1
 
 
 def estimate_solve(n_nodes: int, steps: int) -> tuple[float, float]:

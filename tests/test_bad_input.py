@@ -611,6 +611,22 @@ def test_results_beyond_the_free_disk_are_refused_naming_solve_steps(solved, tmp
     assert r.stdout.strip() == "LEFT:"
 
 
+def test_the_time_estimate_is_within_a_factor_1_5_of_the_recorded_sweeps():
+    """The rough time a solve logs before it starts against every whole sweep recorded at the
+    shipped defaults (benchmarks/results/bench_solve.json, 5k to 295k nodes, 10 load steps)."""
+    import json
+    import pathlib
+
+    from pixmuscle.preflight import estimate_solve
+
+    path = pathlib.Path(__file__).parents[1] / "benchmarks" / "results" / "bench_solve.json"
+    records = [c for c in json.loads(path.read_text())["cases"] if c.get("defaults") and c["status"] == "complete"]
+    assert min(c["nodes"] for c in records) < 6000 and max(c["nodes"] for c in records) > 250_000
+    for c in records:
+        seconds, _ = estimate_solve(c["nodes"], c["steps"])
+        assert 1 / 1.5 < seconds / c["sweep_s"] < 1.5, (c["nodes"], seconds, c["sweep_s"])
+
+
 def test_solve_logs_its_estimate(solved, tmp_path):
     out, cfg = solved
     c = write_config(tmp_path / "c.yaml", {"solve": {**cfg["solve"], "steps": 1}})
