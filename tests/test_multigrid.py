@@ -121,6 +121,24 @@ def test_a_run_with_workers_ends_cleanly():
     assert failed.returncode == 1 and "stop here" in failed.stderr
 
 
+@needs_workers
+@pytest.mark.parametrize("how", ["error", "killed"])
+def test_a_dead_worker_ends_the_run_instead_of_hanging_it(how):
+    """A worker that fails (asked to apply a hierarchy it does not hold: it prints its traceback and
+    aborts) or is killed from outside (SIGKILL, as for memory) while the run waits for its answer:
+    the run ends with exit status 3 and one error line naming the key, instead of waiting for ever."""
+    import subprocess
+    import sys
+
+    kill = "g.command(1, 'apply', 12345)" if how == "error" else "import os; os.kill(g.pids[0], 9)"
+    code = (f"from pixmuscle.mechanics.linsolve import amg_processes as ap; g = ap.group(2); {kill}; "
+            "print(g.comm.recv(source=1, tag=ap._DATA))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 3, run.stderr
+    assert "error: solve.solver.amg_processes: the BoomerAMG worker process" in run.stderr
+    assert ("KeyError: 12345" in run.stderr) == (how == "error")
+
+
 def test_drop_weak_blocks_keeps_the_diagonal_and_the_strong_blocks():
     """Blocks weaker than tol √(‖K_aa‖ ‖K_bb‖) go, the rest stay as they were: checked block by
     block against the dense matrix."""

@@ -15,16 +15,24 @@ one process (hypre's hybrid Gauss–Seidel is Jacobi across ranks, and the coars
 so iteration counts and results at the solver tolerances differ slightly from P = 1; a run
 repeats itself for a given P.
 
-The workers end with the run (an ``atexit`` hook sends them ``stop``); a worker that dies takes
-the MPI job, and with it the run, down, loudly.
+The workers end with the run (an ``atexit`` hook sends them ``stop``). A worker that fails prints
+its traceback and aborts; a thread of the run checks every second that its workers live, and when
+one has died (an error, or killed from outside, e.g. for memory) it ends the run at once with one
+``error:`` line and exit status 3, since the run may be waiting for it inside hypre. A run that
+fails on its own while the workers are inside a set-up or cycle with it aborts the MPI job at exit
+(exit status 1), since they could not receive a ``stop``. Hierarchies are freed on both sides at the same point of the
+command sequence: a collected hierarchy is only queued, and freed before the next command.
 """
 
 from __future__ import annotations
 
 import atexit
+import contextlib
 import itertools
+import os
 import resource
 import sys
+import threading
 import time
 
 import numpy as np
@@ -34,7 +42,7 @@ from ...errors import SolverError
 
 _CMD, _DATA = 11, 12
 _CHUNK = 1 << 26  # elements per message: MPI counts are int
-_group = None
+_groups: dict[int, WorkerGroup] = {}
 _keys = itertools.count()
 
 
@@ -60,17 +68,52 @@ class WorkerGroup:
         from mpi4py import MPI
 
         try:
-            self._inter = MPI.COMM_SELF.Spawn(sys.executable, args=["-m", __name__], maxprocs=size - 1)
+            self._inter = MPI.COMM_SELF.Spawn(sys.executable, args=["-c", f"from {__name__} import _serve; _serve()"],
+                                              maxprocs=size - 1)
         except MPI.Exception as err:
             raise SolverError(f"solve.solver.amg_processes: could not start {size - 1} MPI worker(s) for BoomerAMG "
                               f"({err}; MPI's own message above says why); amg_processes: 1 needs none") from None
         self.comm = self._inter.Merge(high=False)
+        self.pids = [self.comm.recv(source=rank, tag=_DATA) for rank in range(1, size)]
         self.size = size
         self.open = True
+        self.busy = False  # inside a set-up or cycle with the workers
+        self._unfreed = []  # (key, PETSc objects) of collected hierarchies, freed before the next command
         atexit.register(self.close)
+        threading.Thread(target=self._watch, name="amg-workers-watch", daemon=True).start()
+
+    def _watch(self) -> None:
+        """End the run when a worker has died (it may wait for it inside hypre for ever)."""
+        while self.open:
+            time.sleep(1.0)
+            dead = [pid for pid in self.pids if not _alive(pid)]
+            if dead and self.open:
+                sys.stderr.write(f"error: solve.solver.amg_processes: the BoomerAMG worker process {dead[0]} has "
+                                 "died (its error, if it had one, is above; else it was killed, e.g. for memory); "
+                                 "the run stops\n")
+                sys.stderr.flush()
+                os._exit(3)
 
     def command(self, rank: int, *msg) -> None:
+        while self._unfreed:
+            key, objs = self._unfreed.pop(0)
+            for r in range(1, self.size):
+                self.comm.send(("free", key), dest=r, tag=_CMD)
+            _destroy(objs)
         self.comm.send(msg, dest=rank, tag=_CMD)
+
+    @contextlib.contextmanager
+    def together(self):
+        """Marks work that the workers do together with this process; an exception leaves the mark,
+        and :meth:`close` then aborts the job instead of waiting for workers that cannot listen."""
+        self.busy = True
+        yield
+        self.busy = False
+
+    def release(self, key: int, objs: tuple) -> None:
+        """Queue hierarchy ``key`` and this process's PETSc objects of it to be freed on all processes."""
+        if self.open:
+            self._unfreed.append((key, objs))
 
     def peak_rss_kb(self) -> list[int]:
         """Each worker's peak resident memory so far, kB (Linux ``ru_maxrss``)."""
@@ -84,7 +127,10 @@ class WorkerGroup:
         """Stop the workers and leave the communicator (idempotent)."""
         if not self.open:
             return
+        if self.busy:
+            self.comm.Abort(1)
         self.open = False
+        self._unfreed.clear()
         for rank in range(1, self.size):
             self.command(rank, "stop")
         self.comm.Free()
@@ -92,19 +138,36 @@ class WorkerGroup:
 
 
 def group(size: int) -> WorkerGroup:
-    """The worker group of this process with ``size`` processes in all (spawned on first use; a group
-    of another size is closed first)."""
-    global _group
-    if _group is None or not _group.open or _group.size != size:
-        if _group is not None:
-            _group.close()
-        _group = WorkerGroup(size)
-    return _group
+    """The worker group of this process with ``size`` processes in all (spawned on first use)."""
+    if size not in _groups or not _groups[size].open:
+        _groups[size] = WorkerGroup(size)
+    return _groups[size]
 
 
 def workers_peak_rss_kb() -> list[int]:
-    """Peak resident memory of each worker of this process's group, kB; empty without workers."""
-    return _group.peak_rss_kb() if _group is not None and _group.open else []
+    """Peak resident memory of each worker of this process's groups, kB; empty without workers."""
+    return [kb for g in _groups.values() if g.open for kb in g.peak_rss_kb()]
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (not ended, not a zombie; the workers are not this process's children)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+    except FileNotFoundError:
+        return False
+    except OSError:  # no /proc: ask the kernel
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        return True
+
+
+def _destroy(objs) -> None:
+    """Destroy a hierarchy's PETSc objects (PC, matrix, vectors) in one order on every process."""
+    for o in objs:
+        o.destroy()
 
 
 def send_array(comm, a: np.ndarray, rank: int) -> None:
@@ -179,6 +242,7 @@ class SpreadBoomerAMG:
             K = K()
         if not (sp.isspmatrix_bsr(K) and K.blocksize == (3, 3)):
             K = sp.bsr_matrix(K, blocksize=(3, 3))
+            K.sort_indices()
         self._workers = workers
         self._key = next(_keys)
         self.nnz_per_row = K.nnz / K.shape[0]
@@ -196,10 +260,11 @@ class SpreadBoomerAMG:
             send_array(comm, K.data[p0:p1], rank)
         b1 = self.bounds[1]
         p1 = K.indptr[b1]
-        A = hypre_matrix(PETSc.Comm(comm), K.indptr[:b1 + 1], K.indices[:p1], K.data[:p1], int(b1), nb)
-        self.shape = K.shape
-        del K
-        self._A, self._pc, self._x, self._y = hypre_pc(A, prefix, options)
+        with workers.together():
+            A = hypre_matrix(PETSc.Comm(comm), K.indptr[:b1 + 1], K.indices[:p1], K.data[:p1], int(b1), nb)
+            self.shape = K.shape
+            del K
+            self._A, self._pc, self._x, self._y = hypre_pc(A, prefix, options)
         self._n0 = 3 * int(b1)
 
     def __matmul__(self, v: np.ndarray) -> np.ndarray:
@@ -210,32 +275,48 @@ class SpreadBoomerAMG:
             lo, hi = 3 * self.bounds[rank], 3 * self.bounds[rank + 1]
             self._workers.command(rank, "apply", self._key)
             comm.Send(v[lo:hi], dest=rank, tag=_DATA)
-        self._x.setArray(v[: self._n0])
-        self._pc.apply(self._x, self._y)
-        out[: self._n0] = self._y.getArray()
-        for rank in range(1, self._workers.size):
-            lo, hi = 3 * self.bounds[rank], 3 * self.bounds[rank + 1]
-            comm.Recv(out[lo:hi], source=rank, tag=_DATA)
+        with self._workers.together():
+            self._x.setArray(v[: self._n0])
+            self._pc.apply(self._x, self._y)
+            out[: self._n0] = self._y.getArray()
+            for rank in range(1, self._workers.size):
+                lo, hi = 3 * self.bounds[rank], 3 * self.bounds[rank + 1]
+                comm.Recv(out[lo:hi], source=rank, tag=_DATA)
         return out
 
     def __del__(self):
+        # no MPI here: a garbage collection may come in the middle of another hierarchy's set-up
+        objs = tuple(getattr(self, o) for o in ("_pc", "_A", "_x", "_y") if getattr(self, o, None) is not None)
         workers = getattr(self, "_workers", None)
         if workers is not None and workers.open:
-            for rank in range(1, workers.size):
-                workers.command(rank, "free", self._key)
-        for obj in ("_pc", "_A", "_x", "_y"):
-            o = getattr(self, obj, None)
-            if o is not None:
-                o.destroy()
+            workers.release(self._key, objs)
+        else:  # the workers are gone (or were never reached): this process's objects only
+            _destroy(objs)
 
 
 def _serve() -> None:
-    """A worker's loop: set up, apply and free hierarchies on rank 0's commands until ``stop``."""
+    """A worker's loop: set up, apply and free hierarchies on rank 0's commands until ``stop``; any
+    error prints its traceback and aborts the MPI job (rank 0 would otherwise wait for ever)."""
+    import traceback
+
     from mpi4py import MPI
-    from petsc4py import PETSc
 
     parent = MPI.Comm.Get_parent()
     comm = parent.Merge(high=True)
+    comm.send(os.getpid(), dest=0, tag=_DATA)
+    try:
+        _commands(comm)
+    except BaseException:
+        traceback.print_exc()
+        sys.stderr.flush()
+        comm.Abort(1)
+    comm.Free()
+    parent.Disconnect()
+
+
+def _commands(comm) -> None:
+    from petsc4py import PETSc
+
     held = {}
     while True:
         nap = 5e-5  # s; doubles up to 1 ms while no command comes: a cycle waits ≤ 1 ms, an idle worker ~1 % of a core
@@ -248,26 +329,23 @@ def _serve() -> None:
             indptr, indices, data = (recv_array(comm) for _ in range(3))
             A = hypre_matrix(PETSc.Comm(comm), indptr, indices, data, n_local, n_total)
             del indptr, indices, data
-            held[key] = hypre_pc(A, prefix, options)
+            A, pc, x, y = hypre_pc(A, prefix, options)
+            held[key] = (pc, A, x, y)
         elif cmd == "apply":
-            A, pc, x, y = held[args[0]]
-            buf = np.empty(x.getLocalSize())
-            comm.Recv(buf, source=0, tag=_DATA)
-            x.setArray(buf)
+            pc, A, x, y = held[args[0]]
+            comm.Recv(x.getArray(), source=0, tag=_DATA)
             pc.apply(x, y)
-            comm.Send(np.ascontiguousarray(y.getArray()), dest=0, tag=_DATA)
+            comm.Send(y.getArray(), dest=0, tag=_DATA)
         elif cmd == "free":
-            for o in held.pop(args[0], ())[::-1]:
-                o.destroy()
+            _destroy(held.pop(args[0]))
         elif cmd == "rss":
             comm.send(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, dest=0, tag=_DATA)
         elif cmd == "stop":
             break
+        else:
+            raise ValueError(f"unknown command {cmd!r}")
     for objs in held.values():
-        for o in objs[::-1]:
-            o.destroy()
-    comm.Free()
-    parent.Disconnect()
+        _destroy(objs)
 
 
 if __name__ == "__main__":

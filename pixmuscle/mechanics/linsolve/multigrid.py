@@ -63,7 +63,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...errors import InputError
-from .amg_processes import SpreadBoomerAMG, group, hypre_pc
+from .amg_processes import SpreadBoomerAMG, group, hypre_matrix, hypre_pc
 from .amg_processes import available as amg_processes_available
 from .petsc import INSTALL_HINT
 
@@ -103,15 +103,18 @@ def resolve(amg: str, processes: int = 1) -> str:
     if processes > cores:
         raise InputError(f"solve.solver.amg_processes: {processes} processes, but this run has {cores} cores: "
                          f"each BoomerAMG process needs a core of its own (at most {cores} here)")
+    if processes > 1:
+        if amg not in ("hypre", "auto"):
+            raise InputError(f"solve.solver.amg_processes: {processes} processes need amg: hypre (or auto), not {amg}")
+        if not hypre_available():
+            raise InputError(f"solve.solver.amg_processes: {processes} processes need hypre; {INSTALL_HINT}")
+        if not amg_processes_available():
+            raise InputError(f"solve.solver.amg_processes: {processes} processes need mpi4py, which is not installed: "
+                             "`make venv` installs it with the PETSc backend, or `pip install mpi4py`")
     if amg == "auto":
-        amg = "hypre" if hypre_available() or processes > 1 else "pyamg"
+        amg = "hypre" if hypre_available() else "pyamg"
     if amg == "hypre" and not hypre_available():
         raise InputError(f"solve.solver.amg: hypre needs petsc4py built against a PETSc with hypre; {INSTALL_HINT}")
-    if processes > 1:
-        if amg != "hypre":
-            raise InputError(f"solve.solver.amg_processes: {processes} processes need amg: hypre (or auto), not {amg}")
-        if not amg_processes_available():
-            raise InputError(f"solve.solver.amg_processes: {processes} processes need mpi4py; {INSTALL_HINT}")
     return amg
 
 
@@ -172,9 +175,8 @@ class BoomerAMG:
         self.nnz_per_row = K.nnz / K.shape[0]
         self.shape = K.shape
         if sp.isspmatrix_bsr(K) and K.blocksize == (3, 3):  # blocks straight into PETSc: no CSR copy
-            self._A = PETSc.Mat().createBAIJ(size=K.shape, bsize=3, comm=PETSc.COMM_SELF,
-                                             csr=(K.indptr.astype(idx, copy=False), K.indices.astype(idx, copy=False),
-                                                  K.data.reshape(-1)))
+            nb = K.shape[0] // 3
+            self._A = hypre_matrix(PETSc.COMM_SELF, K.indptr, K.indices, K.data, nb, nb)
         else:
             A = sp.csr_matrix(K)
             A.sort_indices()
