@@ -20,8 +20,9 @@ its traceback and aborts; a thread of the run checks every second that its worke
 one has died (an error, or killed from outside, e.g. for memory) it ends the run at once with one
 ``error:`` line and exit status 3, since the run may be waiting for it inside hypre. A run that
 fails on its own while the workers are inside a set-up or cycle with it aborts the MPI job at exit
-(exit status 1), since they could not receive a ``stop``. Hierarchies are freed on both sides at the same point of the
-command sequence: a collected hierarchy is only queued, and freed before the next command.
+(exit status 1), since they could not receive a ``stop``. Hierarchies are freed on both sides at
+the same point of the command sequence: a collected hierarchy is only queued, and freed before the
+next command.
 """
 
 from __future__ import annotations
@@ -347,6 +348,3 @@ def _commands(comm) -> None:
     for objs in held.values():
         _destroy(objs)
 
-
-if __name__ == "__main__":
-    _serve()
