@@ -62,8 +62,8 @@ bench-scale: $(STAMP)
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 5k:auto 20k:auto 75k:auto
 	for s in 20k-fine 75k-fine; do $(BIN)/python benchmarks/bench_solve.py --conditioning $$s --append --variants projected:2,2,3:mixed_amg:patch --scales 1 || exit 1; done
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 295k:auto --checkpoint .bench-checkpoints
-	$(BIN)/python benchmarks/bench_solve.py --append --cases 295k:auto_2p --checkpoint .bench-checkpoints
-	$(BIN)/python benchmarks/bench_solve.py --append --cases 75k:auto_2p 20k:auto_2p
+	$(BIN)/python benchmarks/bench_solve.py --append --cases 295k:auto_1p --checkpoint .bench-checkpoints
+	$(BIN)/python benchmarks/bench_solve.py --append --cases 75k:auto_1p 20k:auto_2p
 
 # the paper's Examples 3 and 2 at the paper's resolution, each timed stage by stage (wall time, peak memory,
 # load average; per model nodes, Newton iterations, F_max: benchmarks/results/bench_examples.json) and the

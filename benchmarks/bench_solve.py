@@ -74,6 +74,7 @@ BACKENDS = {
     "cg_amg": {"backend": "cg_amg"},                                          # hypre BoomerAMG where installed
     "mixed_amg": {"backend": "mixed_amg"},
     "auto": {"backend": "auto"},                                              # the shipped default
+    "auto_1p": {"backend": "auto", "amg_processes": 1},                       # BoomerAMG on this process only
     "auto_2p": {"backend": "auto", "amg_processes": 2},                       # BoomerAMG on two processes
     "mixed_amg_pyamg": {"backend": "mixed_amg", "amg": "pyamg"},
     "auto_pyamg": {"backend": "auto", "amg": "pyamg"},
@@ -194,7 +195,7 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
         "cg_s_per_iteration": round(info["linear_solve_s"] / max(np.sum(lin), 1), 4) if backend == "cg_amg" else None,
         "preconditioner_builds": info.get("preconditioner_builds"),
         "amg": info.get("amg"),
-        "amg_processes": BACKENDS[backend].get("amg_processes", 1),
+        "amg_processes": info.get("amg_processes"),
         "factorizations": info.get("factorizations"),
         "direct_engine": info.get("linear_engine"),
         "factor_nnz_per_row": round(info["factor_nnz"] / (3 * model.n_nodes), 1) if info.get("factor_nnz") else None,

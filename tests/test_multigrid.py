@@ -104,6 +104,73 @@ def test_more_processes_need_hypre_and_as_many_cores():
         multigrid.resolve("auto", cores + 1)
 
 
+def test_auto_processes_two_from_fifty_thousand_nodes_on_where_the_run_has_two_cores(monkeypatch):
+    """``amg_processes: auto``: one process below the size where two pay, with pyamg, under mpiexec
+    and where the run has one thread (a Dask cohort's share); else two where two cores are there."""
+    import numba
+
+    n = multigrid.AUTO_PROCESSES_NODES
+    assert multigrid.auto_processes("pyamg", 10 * n) == 1
+    assert multigrid.auto_processes("hypre", n - 1) == 1
+    cores = min(len(os.sched_getaffinity(0)), numba.get_num_threads())
+    if amg_processes.available():
+        assert multigrid.auto_processes("hypre", n) == min(2, cores)
+    monkeypatch.setenv("OMPI_COMM_WORLD_SIZE", "2")  # one of two ranks of an mpiexec launch
+    assert multigrid.auto_processes("hypre", 10 * n) == 1
+    monkeypatch.delenv("OMPI_COMM_WORLD_SIZE")
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)  # as NUMBA_NUM_THREADS=1 in a Dask cohort with a model per core
+    try:
+        assert multigrid.auto_processes("hypre", 10 * n) == 1
+    finally:
+        numba.set_num_threads(threads)
+
+
+@needs_workers
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="auto takes one process on one core")
+def test_auto_processes_fall_back_to_one_where_the_workers_do_not_start(tmp_path):
+    """``amg_processes: auto`` chose two processes but MPI refuses the worker (a host file with one
+    slot, as in a batch allocation of one task): the solve runs on one process with a warning and
+    gives the one-process solution; asked for explicitly, two processes are an error naming the key."""
+    import subprocess
+    import sys
+
+    hostfile = tmp_path / "hosts"
+    hostfile.write_text("localhost slots=1\n")
+    env = dict(os.environ, OMPI_MCA_orte_default_hostfile=str(hostfile))
+    code = """if True:
+        import logging, numpy as np
+        from pixmuscle.config import parse_section
+        from pixmuscle.errors import SolverError
+        from pixmuscle.mechanics.config import SolveConfig
+        from pixmuscle.mechanics.linsolve import multigrid
+        from pixmuscle.mechanics.solve import solve
+        from pixmuscle.verify.mechanics import mask_model
+
+        logging.basicConfig()
+        multigrid.AUTO_PROCESSES_NODES = 0  # auto takes two processes for this small model
+        model = mask_model(np.ones((4, 4, 5), bool), (0.15, 0.15, 0.4), tissue=1)
+        bcs = [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]}]
+        solver = {"backend": "mixed_amg", "amg": "hypre"}
+        cfg = lambda p: parse_section(SolveConfig, {"steps": 2, "boundary_conditions": bcs, "activation": {"from": 0.0, "to": 0.5},
+                                                   "solver": solver | {"amg_processes": p}}, "solve")
+        auto, one = solve(model, cfg("auto")), solve(model, cfg(1))
+        print(auto.info["amg_processes"], auto.status, abs(auto.force("z_max")[-1] / one.force("z_max")[-1] - 1))
+        try:
+            solve(model, cfg(2))
+        except SolverError as exc:
+            print(exc)
+    """
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env)
+    assert run.returncode == 0, run.stderr
+    first, asked = run.stdout.splitlines()[:2]
+    procs, status, diff = first.split()
+    assert procs == "1" and status == "complete" and float(diff) < 1e-12, run.stdout
+    assert "could not start 1 MPI worker(s) for BoomerAMG" in run.stderr
+    assert "BoomerAMG runs on this process only" in run.stderr
+    assert "linear solver: solve.solver.amg_processes: could not start 1 MPI worker(s)" in asked, asked
+
+
 @needs_workers
 def test_a_run_with_workers_ends_cleanly():
     """A process that spawned BoomerAMG workers exits at once and with status 0 (the workers are

@@ -14,14 +14,16 @@ import dataclasses
 import logging
 import time
 from dataclasses import field
+from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
 
 from ...errors import SolverError, SolverGaveUp
+from .amg_processes import group
 from .base import BACKENDS, Iterative, LinearSolver, SolverMemory, built_from, memory_state, pcg, rigid_body_modes
 from .fgmres import fgmres
-from .multigrid import AMG_CHOICES, resolve, v_cycle
+from .multigrid import AMG_CHOICES, auto_processes, resolve, v_cycle
 
 _LOG = logging.getLogger(__name__)
 
@@ -48,7 +50,7 @@ class CGAMGOptions(Iterative):
     rebuild_cost: int = field(default=100, metadata={"range": (1, None), "doc": "what a build of the AMG hierarchy costs, in Krylov iterations: the hierarchy is rebuilt once the iterations beyond its rate right after the last build add up to this many (within a solve too). Counted in iterations, not seconds, so that a run repeats itself exactly"})
     give_up: float = field(default=4.0, metadata={"gt": 0, "doc": "a solve with a hierarchy that has not yet converged a solve stops after give_up × (the last measured iterations per decade) × decades + rebuild_cost iterations: such a system is far harder than the earlier ones (an overshooting Newton update), and Newton does better to cut the load increment back"})
     amg: str = field(default="auto", metadata={"choices": AMG_CHOICES, "doc": "the multigrid: `hypre` (BoomerAMG through petsc4py, compiled: on the 21k leg a 14× faster AMG set-up and a 1.8× faster cycle than pyamg), `pyamg` (smoothed aggregation, always installed), `auto` (hypre where petsc4py with hypre is installed, else pyamg)"})
-    amg_processes: int = field(default=1, metadata={"range": (1, None), "doc": "processes BoomerAMG runs on: this one and amg_processes − 1 MPI workers it spawns (mpi4py, no mpiexec needed; hypre only). Each set-up and V-cycle then runs on that many cores (at most the run's cores); the rest of the run stays in one process (linsolve/amg_processes.py). Pays from ~50k nodes on; not in a Dask cohort, where each core already runs a model"})
+    amg_processes: int | Literal["auto"] = field(default="auto", metadata={"range": (1, None), "doc": "processes BoomerAMG runs on: this one and amg_processes − 1 MPI workers it spawns (mpi4py, no mpiexec needed; hypre only). Each set-up and V-cycle then runs on that many cores (at most the run's cores); the rest of the run stays in one process (linsolve/amg_processes.py). auto: 2 from 50,000 nodes on where the run has 2 cores of its own (not in a Dask cohort that runs a model per core, not under mpiexec), else 1; with auto a failed start of the worker falls back to 1 with a warning"})
 
 
 @BACKENDS.register("cg_amg", options=CGAMGOptions)
@@ -80,8 +82,10 @@ class KrylovAMGSolver(LinearSolver):
         rate (below).
     amg : {"auto", "hypre", "pyamg"}
         The multigrid (:func:`.multigrid.resolve`).
-    amg_processes : int
-        Processes BoomerAMG runs on (:mod:`.amg_processes`); more than 1 needs hypre.
+    amg_processes : int or "auto"
+        Processes BoomerAMG runs on (:mod:`.amg_processes`); more than 1 needs hypre. ``"auto"``:
+        :func:`.multigrid.auto_processes` of the model's size, falling back to 1 (with a warning)
+        where the workers do not start.
 
     Notes
     -----
@@ -114,10 +118,11 @@ class KrylovAMGSolver(LinearSolver):
 
     def __init__(self, X, ijk, rtol: float = 1e-8, maxiter: int = 2000, reach: int = 2, aggregate=(3, 3, 1),
                  theta: float = 0.1, restart: int = 100, rebuild_cost: int = 100, give_up: float = 4.0,
-                 amg: str = "auto", amg_processes: int = 1):
+                 amg: str = "auto", amg_processes: int | str = "auto"):
         super().__init__()
-        self.amg = resolve(amg, amg_processes)
-        self.amg_processes = amg_processes
+        self._auto_processes = amg_processes == "auto"
+        self.amg = resolve(amg, 1 if self._auto_processes else amg_processes)
+        self.amg_processes = auto_processes(self.amg, len(X)) if self._auto_processes else amg_processes
         self.rebuild_cost = rebuild_cost
         self.give_up = give_up
         self.restart = restart
@@ -149,6 +154,12 @@ class KrylovAMGSolver(LinearSolver):
         t0 = time.perf_counter()
         self._M = None  # release the old hierarchy before the new one is built (peak memory)
         aggregates = voxel_aggregates(self.ijk, self.aggregate) if self.amg == "pyamg" else None
+        if self.amg_processes > 1 and self._auto_processes:
+            try:
+                group(self.amg_processes)
+            except SolverError as exc:  # chosen, not asked for: one process does the same job, slower
+                _LOG.warning("%s; BoomerAMG runs on this process only", exc)
+                self.amg_processes = 1
         self._M = v_cycle(self.amg, self._stand_in, self.B, aggregates, self.theta, self.amg_processes)  # made and released inside
         self.info["preconditioner_nnz_per_row"] = self._M.nnz_per_row
         self.info["levels"] = self._M.levels
@@ -246,7 +257,8 @@ class KrylovAMGSolver(LinearSolver):
 
     @property
     def memory_tag(self) -> str:
-        return f"{self.name}/{self.amg}"
+        # hierarchies spread over other numbers of processes differ in round-off: a resume with another one starts afresh
+        return f"{self.name}/{self.amg}" + (f"/{self.amg_processes}" if self.amg_processes > 1 else "")
 
     def memory(self) -> SolverMemory | None:
         """The state the hierarchy was built from and the rebuild rule's counters."""

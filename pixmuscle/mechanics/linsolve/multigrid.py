@@ -42,7 +42,9 @@ hypre runs on one core per process. ``amg_processes`` > 1 (option of ``cg_amg``,
 and ``auto``) sets up and cycles each hierarchy on this process and spawned MPI workers
 (:mod:`.amg_processes`): the 74k leg's whole sweep takes 342 s on two processes against 402 s
 on one, the refined 295k model's 47 min against 67 min; at 21k nodes two do not pay
-(docs/performance.md, "BoomerAMG on two processes").
+(docs/performance.md, "BoomerAMG on two processes"). Hence ``amg_processes: auto`` (the
+default, :func:`auto_processes`): two processes from :data:`AUTO_PROCESSES_NODES` nodes on where
+the run has two cores of its own, else one.
 
 References
 ----------
@@ -63,12 +65,20 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...errors import InputError
+from ...parallel import launched_size
+from ..threaded import thread_count
 from .amg_processes import SpreadBoomerAMG, group, hypre_matrix, hypre_pc
 from .amg_processes import available as amg_processes_available
 from .petsc import INSTALL_HINT
 
 #: choices of the ``amg`` option of the iterative backends
 AMG_CHOICES = ("auto", "hypre", "pyamg")
+
+#: ``amg_processes: auto`` spreads BoomerAMG over :data:`AUTO_PROCESSES` processes from this many nodes on:
+#: the measured whole sweeps at 74k and 295k nodes gain 15 % and 30 %, the one at 21k loses 5 %
+AUTO_PROCESSES_NODES = 50_000
+#: processes ``amg_processes: auto`` takes at most (the number measured; more cores may pay more)
+AUTO_PROCESSES = 2
 
 _PREFIX = "pixmuscleamg_"
 #: PETSc options of the BoomerAMG cycle (names without the dash); ``petsc_mixed`` uses them too
@@ -116,6 +126,17 @@ def resolve(amg: str, processes: int = 1) -> str:
     if amg == "hypre" and not hypre_available():
         raise InputError(f"solve.solver.amg: hypre needs petsc4py built against a PETSc with hypre; {INSTALL_HINT}")
     return amg
+
+
+def auto_processes(amg: str, n_nodes: int) -> int:
+    """Processes of ``amg_processes: auto`` for a model of ``n_nodes`` nodes and the multigrid ``amg``
+    (after :func:`resolve`): :data:`AUTO_PROCESSES` from :data:`AUTO_PROCESSES_NODES` nodes on, as
+    many as the run's threads allow (numba's threads over the processes of an MPI launch, which a
+    Dask cohort caps at its share of the cores, and the cores the process may run on), one under
+    ``mpiexec``, with pyamg or without mpi4py."""
+    if amg != "hypre" or n_nodes < AUTO_PROCESSES_NODES or launched_size() > 1 or not amg_processes_available():
+        return 1
+    return max(1, min(AUTO_PROCESSES, thread_count(), len(os.sched_getaffinity(0))))
 
 
 class SmoothedAggregation:
