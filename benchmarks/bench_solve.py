@@ -286,7 +286,7 @@ def probe(size: str, penalty: float | None) -> dict:
     t = time.perf_counter()
     solver.prepare(system, state)
     out["preconditioner_setup_s"] = round(time.perf_counter() - t, 1)
-    out.update(levels=solver.info["levels"], operator_complexity=round(solver.info["operator_complexity"], 2),
+    out.update(amg_processes=solver.amg_processes, levels=solver.info["levels"], operator_complexity=round(solver.info["operator_complexity"], 2),
                preconditioner_nnz_per_row=round(solver.info["preconditioner_nnz_per_row"], 1),
                pattern_s=round(system.timings.get("pattern_s", 0.0), 1))
     v = np.random.default_rng(0).standard_normal(3 * model.n_nodes)
@@ -397,6 +397,7 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
                          "region_solves": bool(getattr(solver, "region_solves", False) and solver.info.get("region_nodes")),
                          "schur": getattr(solver, "schur", None), "restart": getattr(solver, "restart", None),
                          "probe_spacing": getattr(solver, "probe_spacing", None),
+                         "amg_processes": getattr(solver, "amg_processes", None),
                          "krylov_iterations": its, "status": status, "solve_s": round(time.perf_counter() - t, 1),
                          "setup_s": round(setup, 1), **(mixed or {}), "default": bool(default)})
             print(json.dumps(rows[-1]), flush=True)
@@ -520,7 +521,7 @@ def multigrid(size: str, penalty: float | None, amg: str) -> dict:
     system, _ = build_system(model, cfg)
     state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.095)
     solver = make_solver("mixed_amg", model.X, ijk=model.ijk, amg=amg)
-    out = {"size": size, "amg": amg, "nodes": model.n_nodes}
+    out = {"size": size, "amg": amg, "nodes": model.n_nodes, "amg_processes": solver.amg_processes}
     if amg == "hypre":
         from pixmuscle.mechanics.linsolve.multigrid import BOOMERAMG_OPTIONS
 

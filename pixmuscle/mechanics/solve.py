@@ -720,7 +720,7 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
                  "boundary condition %s: constraint gap %.3g cm (%.2g %% of the largest displacement, %.3g cm); "
                  "its nodes move %.3g cm in the constrained components", name, g["max_cm"], 100 * g["relative"],
                  g["max_displacement_cm"], g["node_cm"])
-    warnings = []
+    warnings = list(getattr(linsolver, "warnings", []))
     if last_state:
         msg = ellipticity_warning(system, last_state[0])
         info["non_elliptic_nodes"] = int(msg[0])

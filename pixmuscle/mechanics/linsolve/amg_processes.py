@@ -44,6 +44,7 @@ from ...errors import SolverError
 _CMD, _DATA = 11, 12
 _CHUNK = 1 << 26  # elements per message: MPI counts are int
 _groups: dict[int, WorkerGroup] = {}
+_refused: dict[int, str] = {}  # sizes MPI would not spawn, and why
 _keys = itertools.count()
 
 
@@ -72,8 +73,8 @@ class WorkerGroup:
             self._inter = MPI.COMM_SELF.Spawn(sys.executable, args=["-c", f"from {__name__} import _serve; _serve()"],
                                               maxprocs=size - 1)
         except MPI.Exception as err:
-            raise SolverError(f"solve.solver.amg_processes: could not start {size - 1} MPI worker(s) for BoomerAMG "
-                              f"({err}; MPI's own message above says why); amg_processes: 1 needs none") from None
+            _refused[size] = str(err)
+            raise refusal(size) from None
         self.comm = self._inter.Merge(high=False)
         self.pids = [self.comm.recv(source=rank, tag=_DATA) for rank in range(1, size)]
         self.size = size
@@ -139,10 +140,21 @@ class WorkerGroup:
 
 
 def group(size: int) -> WorkerGroup:
-    """The worker group of this process with ``size`` processes in all (spawned on first use)."""
+    """The worker group of this process with ``size`` processes in all (spawned on first use; a
+    size MPI refused once is not tried again, :func:`refusal`)."""
+    if size in _refused:
+        raise refusal(size)
     if size not in _groups or not _groups[size].open:
         _groups[size] = WorkerGroup(size)
     return _groups[size]
+
+
+def refusal(size: int) -> SolverError:
+    """The error of a refused spawn of ``size`` − 1 workers; its ``reason`` is MPI's."""
+    exc = SolverError(f"solve.solver.amg_processes: could not start {size - 1} MPI worker(s) for BoomerAMG "
+                      f"({_refused[size]}; MPI's own message above says why); amg_processes: 1 needs none")
+    exc.reason = _refused[size]
+    return exc
 
 
 def workers_peak_rss_kb() -> list[int]:

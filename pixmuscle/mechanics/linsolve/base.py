@@ -63,6 +63,7 @@ class LinearSolver:
 
     def __init__(self):
         self.info = {"iterations": 0, "setup_s": 0.0, "solve_s": 0.0}
+        self.warnings: list[str] = []  # what the results' warnings should say about this solver's choices
 
     @classmethod
     def from_options(cls, opts, X: np.ndarray, *, ijk: np.ndarray | None = None, width=(4, 4, 4)) -> LinearSolver:

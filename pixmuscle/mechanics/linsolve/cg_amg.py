@@ -120,9 +120,18 @@ class KrylovAMGSolver(LinearSolver):
                  theta: float = 0.1, restart: int = 100, rebuild_cost: int = 100, give_up: float = 4.0,
                  amg: str = "auto", amg_processes: int | str = "auto"):
         super().__init__()
-        self._auto_processes = amg_processes == "auto"
-        self.amg = resolve(amg, 1 if self._auto_processes else amg_processes)
-        self.amg_processes = auto_processes(self.amg, len(X)) if self._auto_processes else amg_processes
+        auto = amg_processes == "auto"
+        self.amg = resolve(amg, 1 if auto else amg_processes)
+        self.amg_processes = auto_processes(self.amg, len(X)) if auto else amg_processes
+        if auto and self.amg_processes > 1:  # settled here, before a resumed solve compares memory tags
+            try:
+                group(self.amg_processes)
+            except SolverError as exc:  # chosen, not asked for: one process does the same job, slower
+                msg = (f"solve.solver.amg_processes: auto chose {self.amg_processes} processes, but MPI did not start "
+                       f"the worker ({exc.reason}); BoomerAMG runs on this process only")
+                _LOG.warning(msg)
+                self.warnings.append(msg)
+                self.amg_processes = 1
         self.rebuild_cost = rebuild_cost
         self.give_up = give_up
         self.restart = restart
@@ -154,12 +163,6 @@ class KrylovAMGSolver(LinearSolver):
         t0 = time.perf_counter()
         self._M = None  # release the old hierarchy before the new one is built (peak memory)
         aggregates = voxel_aggregates(self.ijk, self.aggregate) if self.amg == "pyamg" else None
-        if self.amg_processes > 1 and self._auto_processes:
-            try:
-                group(self.amg_processes)
-            except SolverError as exc:  # chosen, not asked for: one process does the same job, slower
-                _LOG.warning("%s; BoomerAMG runs on this process only", exc)
-                self.amg_processes = 1
         self._M = v_cycle(self.amg, self._stand_in, self.B, aggregates, self.theta, self.amg_processes)  # made and released inside
         self.info["preconditioner_nnz_per_row"] = self._M.nnz_per_row
         self.info["levels"] = self._M.levels

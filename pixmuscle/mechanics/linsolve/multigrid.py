@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import functools
 import os
+import sys
 
 import numpy as np
 import scipy.sparse as sp
@@ -133,10 +134,25 @@ def auto_processes(amg: str, n_nodes: int) -> int:
     (after :func:`resolve`): :data:`AUTO_PROCESSES` from :data:`AUTO_PROCESSES_NODES` nodes on, as
     many as the run's threads allow (numba's threads over the processes of an MPI launch, which a
     Dask cohort caps at its share of the cores, and the cores the process may run on), one under
-    ``mpiexec``, with pyamg or without mpi4py."""
+    ``mpiexec`` with more than one process, in a Dask worker without ``NUMBA_NUM_THREADS``, with
+    pyamg or without mpi4py."""
     if amg != "hypre" or n_nodes < AUTO_PROCESSES_NODES or launched_size() > 1 or not amg_processes_available():
         return 1
+    if _in_dask_worker() and "NUMBA_NUM_THREADS" not in os.environ:  # a scheduler's worker that was given no thread count
+        return 1
     return max(1, min(AUTO_PROCESSES, thread_count(), len(os.sched_getaffinity(0))))
+
+
+def _in_dask_worker() -> bool:
+    """True inside a task of a Dask worker (only where ``distributed`` is imported already)."""
+    distributed = sys.modules.get("distributed")
+    if distributed is None:
+        return False
+    try:
+        distributed.get_worker()
+    except ValueError:
+        return False
+    return True
 
 
 class SmoothedAggregation:
