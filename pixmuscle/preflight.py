@@ -23,11 +23,12 @@ from .outdir import prepare_output_dir
 
 #: bytes per node and stored state of a results file: u, d (3 each), Cauchy stress (6), max principal (1), float64
 RESULT_BYTES_PER_NODE_STEP = 13 * 8
-#: the rough cost of one load step: ``SECONDS_PER_STEP_REF * (n_nodes / NODES_REF) ** STEP_TIME_EXPONENT``,
-#: a least-squares fit in log-log to the whole sweeps at the defaults on 2 cores (benchmarks/results/
-#: bench_solve.json, ``"defaults": true``: 5,460 to 295,073 nodes, 47 s to 67 min for 10 steps); each
-#: within a factor 1.5 of the fit
-SECONDS_PER_STEP_REF, NODES_REF, STEP_TIME_EXPONENT = 3.4, 5460, 1.1
+#: the rough cost of one load step, s: ``a n^p + b n²`` with n = n_nodes / :data:`NODES_REF` and
+#: ``STEP_SECONDS = (a, p, b)``, a least-squares fit in log to the whole sweeps at the defaults on 2 cores
+#: (benchmarks/results/bench_solve.json, ``"defaults": true``: 5,460 to 295,073 nodes, 47 s to 34 min
+#: for 10 steps; each within 5 % of the fit). The n² term is the growth of the Krylov iterations
+STEP_SECONDS = (4.74, 0.52, 0.056)
+NODES_REF = 5460
 
 
 def estimate_solve(n_nodes: int, steps: int) -> tuple[float, float]:
@@ -47,7 +48,9 @@ def estimate_solve(n_nodes: int, steps: int) -> tuple[float, float]:
     nbytes : float
         Uncompressed size of the per-node fields of every stored state (gzip rarely halves it).
     """
-    seconds = steps * SECONDS_PER_STEP_REF * (max(n_nodes, 1) / NODES_REF) ** STEP_TIME_EXPONENT
+    n = max(n_nodes, 1) / NODES_REF
+    a, p, b = STEP_SECONDS
+    seconds = steps * (a * n**p + b * n**2)
     return seconds, float(steps + 1) * n_nodes * RESULT_BYTES_PER_NODE_STEP
 
 
@@ -76,7 +79,7 @@ def check_solve_size(out_path: Path, n_nodes: int, steps: int, key: str = "solve
 
 
 def describe_estimate(n_nodes: int, steps: int, seconds: float, nbytes: float) -> str:
-    """``"535 nodes × 10 load steps: about 1 s and 0.6 MB of results (rough estimate)"``."""
+    """``"73753 nodes × 10 load steps: about 5 min and 84.4 MB of results (rough estimate)"``."""
     from .outdir import _mb
 
     return (f"{n_nodes} nodes × {steps} load steps: about {_duration(seconds)} and {_mb(nbytes)} of results "
