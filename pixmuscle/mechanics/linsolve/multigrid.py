@@ -35,8 +35,9 @@ iterations — on the first Newton system of the leg 39 and 50 FGMRES iterations
 nodes against 39 and 54 with the one-way sweeps, but 0.050 and 0.200 s against 0.039 and 0.136 s
 per cycle with the region solves, 15 % less solve time and 24 % less set-up at 21k
 (docs/performance.md, "Multigrid: BoomerAMG and pyamg"; these two comparisons with nodal
-coarsening). Rigid-body interpolation (hypre's vector interpolation) gave no fewer iterations on
-the leg and a slower set-up, so it is off.
+coarsening). Rigid-body interpolation (hypre's vector interpolation with the nodes' rotations,
+on nodal coarsening) gave more iterations on the leg's fine pixels, 56 and 85 at 21k and 74k
+nodes against 43 and 69, and a slower set-up and cycle, so it is off.
 
 hypre runs on one core per process. ``amg_processes`` > 1 (option of ``cg_amg``, ``mixed_amg``
 and ``auto``) sets up and cycles each hierarchy on this process and spawned MPI workers
