@@ -42,7 +42,8 @@ nodes against 43 and 69, and a slower set-up and cycle, so it is off.
 hypre runs on one core per process. ``amg_processes`` > 1 (option of ``cg_amg``, ``mixed_amg``
 and ``auto``) sets up and cycles each hierarchy on this process and spawned MPI workers
 (:mod:`.amg_processes`): the 74k leg's whole sweep takes 342 s on two processes against 402 s
-on one, the refined 295k model's 47 min against 67 min; at 21k nodes two do not pay
+on one (274 s against 304 s on a faster machine), the refined 295k model's 47 min against 67 min;
+at 21k nodes two do not pay
 (docs/performance.md, "BoomerAMG on two processes"). Hence ``amg_processes: auto`` (the
 default, :func:`auto_processes`): two processes from :data:`AUTO_PROCESSES_NODES` nodes on where
 the run has two cores of its own, else one.
@@ -77,7 +78,7 @@ from .petsc import INSTALL_HINT
 AMG_CHOICES = ("auto", "hypre", "pyamg")
 
 #: ``amg_processes: auto`` spreads BoomerAMG over :data:`AUTO_PROCESSES` processes from this many nodes on:
-#: the measured whole sweeps at 74k and 295k nodes gain 15 % and 30 %, the one at 21k loses 5 %
+#: the measured whole sweeps at 74k and 295k nodes gain 10-15 % and 30 %, the one at 21k loses 5 %
 AUTO_PROCESSES_NODES = 50_000
 #: processes ``amg_processes: auto`` takes at most (the number measured; more cores may pay more)
 AUTO_PROCESSES = 2
