@@ -104,14 +104,19 @@ def leg_labels(scale: float, n_slices: int, spacing=SPACING, seed: int = 0):
     return code.reshape(nx, ny, n_slices), fib.reshape(nx, ny, n_slices, 3), h
 
 
-def leg_case(size: str, penalty: float | None, **solve_keys):
+def leg_case(size: str, penalty: float | None, refine=(1, 1, 1), **solve_keys):
     """(model, SolveConfig) of the SYNTHETIC leg at ``size`` with the Example 2 boundary conditions
-    (both ends fixed, bone surfaces fixed in-plane); ``solve_keys`` add to the ``solve`` section."""
+    (both ends fixed, bone surfaces fixed in-plane); ``solve_keys`` add to the ``solve`` section.
+    ``refine`` (rx, ry, rz) splits every voxel of the leg into rx × ry × rz voxels of the same
+    tissue and fibre (the same voxel domain, ``rx · ry · rz`` times the nodes)."""
     from pixmuscle.config import parse_section
     from pixmuscle.mechanics.config import SolveConfig
     from pixmuscle.model.build import model_from_labels
 
     labels, fibers, h = leg_labels(*SIZES[size])
+    for axis, r in enumerate(refine):
+        labels, fibers = np.repeat(labels, r, axis=axis), np.repeat(fibers, r, axis=axis)
+    h = np.asarray(h, float) / np.asarray(refine)
     model = model_from_labels(labels, h, fibers=fibers, fiber_fallback="muscle_mean")
     sec = {"boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]},
                                    {"nodes": "bone_surface", "fix": ["x", "y"]}], **solve_keys}

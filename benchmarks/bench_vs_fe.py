@@ -33,6 +33,9 @@ positive) at every step, its difference from pixmuscle's, Newton iterations, wal
 
 ``legSIZE:pixmuscle`` (SIZE a key of ``bench_solve.SIZES``: ``1.5k``, ``5k``, ...)
     pixmuscle's ``solve()`` with every default, as ``bench_solve.run_case(SIZE, "auto", 10, 0.95, None)``.
+``legSIZE:pixmuscle:RXxRYxRZ`` (e.g. ``leg5k:pixmuscle:2x2x2``)
+    the same on the same voxel domain with every voxel split into RX × RY × RZ voxels of its tissue and
+    fibre (``bench_solve.leg_case(..., refine=...)``), one node each: pixmuscle's own refinement.
 ``legSIZE:felupe:RXxRYxRZ`` (e.g. ``leg5k:felupe:1x1x2``)
     FElupe hex8 Q1/P0/P0 on the body voxels (:func:`voxel_hex8_mesh`, each voxel split into
     RX × RY × RZ boxes), one ``SolidBodyNearlyIncompressible`` per tissue (the bulk modulus
@@ -122,8 +125,9 @@ def parse_case(spec: str) -> tuple[str, object]:
     """Case name → (method, argument).
 
     ``pixmuscle:nodal|projected`` → ("pixmuscle", method); ``felupe:RXxRYxRZ`` → ("felupe", (rx, ry, rz));
-    ``reference`` → ("reference", None); ``legSIZE:pixmuscle`` → ("leg:pixmuscle", SIZE) and
-    ``legSIZE:felupe:RXxRYxRZ`` → ("leg:felupe", (SIZE, (rx, ry, rz))), SIZE a leg size of
+    ``reference`` → ("reference", None); ``legSIZE:pixmuscle[:RXxRYxRZ]`` → ("leg:pixmuscle", (SIZE,
+    (rx, ry, rz))) ((1, 1, 1) without the split) and ``legSIZE:felupe:RXxRYxRZ`` → ("leg:felupe", (SIZE,
+    (rx, ry, rz))), SIZE a leg size of
     ``bench_solve.SIZES`` (``1.5k``, ``5k``, ...).
     """
     if spec == "reference":
@@ -136,11 +140,13 @@ def parse_case(spec: str) -> tuple[str, object]:
     if is_leg(method) and method[3:] in _bench_solve().SIZES:
         kind, _, rest = arg.partition(":")
         if arg == "pixmuscle":
-            return "leg:pixmuscle", method[3:]
+            return "leg:pixmuscle", (method[3:], (1, 1, 1))
+        if kind == "pixmuscle" and _refine(rest):
+            return "leg:pixmuscle", (method[3:], _refine(rest))
         if kind == "felupe" and _refine(rest):
             return "leg:felupe", (method[3:], _refine(rest))
     raise ValueError(f"case {spec!r}: expected pixmuscle:nodal, pixmuscle:projected, felupe:RXxRYxRZ (whole numbers "
-                     f">= 1, e.g. felupe:2x2x2), legSIZE:pixmuscle or legSIZE:felupe:RXxRYxRZ (SIZE in "
+                     f">= 1, e.g. felupe:2x2x2), legSIZE:pixmuscle[:RXxRYxRZ] or legSIZE:felupe:RXxRYxRZ (SIZE in "
                      f"{', '.join(_bench_solve().SIZES)}, e.g. leg5k:felupe:1x1x2)")
 
 
@@ -485,20 +491,22 @@ def leg_solve_keys(bench_solve) -> dict:
             **bench_solve.newton_tolerances(None)}
 
 
-def run_leg_pixmuscle(size: str) -> dict:
-    """pixmuscle's solve of the SYNTHETIC leg at ``size`` (``bench_solve.leg_case``), every default."""
+def run_leg_pixmuscle(size: str, refine: tuple[int, int, int] = (1, 1, 1)) -> dict:
+    """pixmuscle's solve of the SYNTHETIC leg at ``size`` (``bench_solve.leg_case``), every default,
+    each voxel split into ``refine`` voxels of its tissue and fibre (one node each)."""
     from pixmuscle.mechanics.solve import solve
 
     bench_solve = _bench_solve()
-    model, cfg = bench_solve.leg_case(size, None, **leg_solve_keys(bench_solve))
+    model, cfg = bench_solve.leg_case(size, None, refine=refine, **leg_solve_keys(bench_solve))
     t0 = time.perf_counter()
     res = solve(model, cfg)
     wall = time.perf_counter() - t0
     force = [float(f) for f in res.force("z_max")]
     bottom = float(res.force("z_min")[-1])
     tissue = np.bincount(model.tissue, minlength=4)
-    return {"method": "pixmuscle SCNI-RKPM, every solve default", "size": size, "nodes": model.n_nodes,
-            "dofs": 3 * model.n_nodes, "elements": None, "elements_per_voxel": None,
+    split = "" if tuple(refine) == (1, 1, 1) else f", {'x'.join(map(str, refine))} nodes per voxel"
+    return {"method": f"pixmuscle SCNI-RKPM, every solve default{split}", "size": size, "nodes": model.n_nodes,
+            "dofs": 3 * model.n_nodes, "elements": None, "elements_per_voxel": list(refine),
             "tissue_voxels": {"muscle": int(tissue[1]), "connective_tissue": int(tissue[2]), "fat": int(tissue[3])},
             "status": res.status, "alpha": [float(a) for a in res.alpha], "force_N": force[-1], "force_z_min_N": bottom,
             "force_curve_N": force,
@@ -584,7 +592,7 @@ def run_one(spec: str, steps: int) -> dict:
     if method == "reference":
         return run_reference()
     if method == "leg:pixmuscle":
-        return run_leg_pixmuscle(arg)
+        return run_leg_pixmuscle(*arg)
     if method == "leg:felupe":
         return run_leg_felupe(*arg)
     return run_pixmuscle(arg, steps) if method == "pixmuscle" else run_felupe(arg, steps)
@@ -605,17 +613,61 @@ def with_errors(cases: list[dict], ref: dict | None) -> list[dict]:
     """Add to each tendon case the relative error of its final force against the reference
     (``rel_error``), to each leg case the relative difference of its final force from the
     pixmuscle case on the same leg (``diff_vs_pixmuscle``; None when that case is missing)."""
-    pix = {c.get("size"): c for c in cases if c.get("case", "").endswith(":pixmuscle") and is_leg(c.get("case", ""))
-           and "force_N" in c}
+    pix = {c.get("size"): c for c in cases if is_base_leg_case(c.get("case", "")) and "force_N" in c}
     for c in cases:
         if "force_N" not in c:
             continue
         if is_leg(c.get("case", "")):
-            p = pix.get(c.get("size"))
+            p = None if is_base_leg_case(c["case"]) else pix.get(c.get("size"))
             c["diff_vs_pixmuscle"] = None if p is None else (c["force_N"] - p["force_N"]) / p["force_N"]
         elif ref:
             c["rel_error"] = (c["force_N"] - ref["force_N"]) / ref["force_N"]
     return cases
+
+
+def is_base_leg_case(spec: str) -> bool:
+    """Whether a case is pixmuscle on the leg at one node per voxel (what the leg rows are compared with)."""
+    return is_leg(spec) and spec.split(":")[1:] in (["pixmuscle"], ["pixmuscle", "1x1x1"])
+
+
+def extrapolate(h, force) -> tuple[float, float]:
+    """Richardson extrapolation of three forces at element sizes ``h`` (any unit, decreasing):
+    (F*, p) of F(h) = F* + C h^p through all three points; p by bisection on
+    (F1 − F2)/(F2 − F3) = (h1^p − h2^p)/(h2^p − h3^p), in 0.05 ≤ p ≤ 8. NaNs where the forces do not
+    approach a limit monotonically (no p in that range fits)."""
+    h, f = np.asarray(h, float), np.asarray(force, float)
+    ratio = (f[0] - f[1]) / (f[1] - f[2]) if f[1] != f[2] else np.inf
+
+    def gap(p):
+        return (h[0] ** p - h[1] ** p) / (h[1] ** p - h[2] ** p) - ratio
+
+    lo, hi = 0.05, 8.0
+    if not np.isfinite(ratio) or ratio <= 0 or gap(lo) * gap(hi) > 0:
+        return float("nan"), float("nan")
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if gap(lo) * gap(mid) > 0 else (lo, mid)
+    p = 0.5 * (lo + hi)
+    c = (f[0] - f[1]) / (h[0] ** p - h[1] ** p)
+    return float(f[0] - c * h[0] ** p), float(p)
+
+
+def extrapolation_lines(cases: list[dict]) -> list[str]:
+    """Per leg size and method, the Richardson extrapolation over the cases split 1, 2 and 3 times
+    along every edge of a voxel, and each case's force against it."""
+    lines = []
+    for size in dict.fromkeys(c.get("size") for c in cases):
+        for name in ("pixmuscle", "felupe"):
+            by_r = {c["elements_per_voxel"][0]: c for c in cases
+                    if c.get("size") == size and c.get("case", "").split(":")[1:2] == [name] and "force_N" in c
+                    and c.get("elements_per_voxel") and len(set(c["elements_per_voxel"])) == 1}
+            if not {1, 2, 3} <= set(by_r):
+                continue
+            fstar, p = extrapolate([1, 1 / 2, 1 / 3], [by_r[r]["force_N"] for r in (1, 2, 3)])
+            errs = ", ".join(f"{r} × {r} × {r}: {pct((by_r[r]['force_N'] - fstar) / fstar)}" for r in (1, 2, 3))
+            lines.append(f"- leg {size}, {name}: F* = {fstar:.2f} N, p = {p:.2f} (F = F* + C h^p through the "
+                         f"forces at 1, 2 and 3 nodes or elements per voxel edge, h in voxels); against F*: {errs}.")
+    return (["", "Extrapolated forces:", "", *lines]) if lines else []
 
 
 def pct(x: float | None) -> str:
@@ -665,7 +717,7 @@ def leg_lines(cases: list[dict], meta: dict) -> list[str]:
              "Force: reaction F_z at z_max, tension positive. FElupe carries the isochoric part of pixmuscle's own "
              "law per tissue (muscle: transversely isotropic law with the voxel's fibre and α; connective tissue "
              "and fat: Yeoh) and the law's bulk modulus in the Q1/P0/P0 body, so only the discretisation and the way "
-             "the supports are imposed differ. vs pixmuscle: final force against the pixmuscle case of the same leg.",
+             "the supports are imposed differ. vs pixmuscle: final force against pixmuscle at one node per voxel on the same leg.",
              "",
              "| case | method | nodes | dofs | hexahedra | F_z(z_max) at α = 0.95 (N) | vs pixmuscle | "
              "Newton its / step | wall (s) | peak RSS (GB) | load average 1 min, start → end | status |",
@@ -677,9 +729,10 @@ def leg_lines(cases: list[dict], meta: dict) -> list[str]:
         load = c.get("load_average", {})
         load = f"{load['start'][0]:.1f} → {load['end'][0]:.1f}" if load else "—"
         lines.append(f"| {c['case']} | {c['method']} | {c['nodes']} | {c['dofs']} | {c.get('elements') or '—'} | "
-                     f"{c['force_N']:.4f} | {pct(c.get('diff_vs_pixmuscle')) if 'felupe' in c['case'] else '—'} | "
+                     f"{c['force_N']:.4f} | {pct(c.get('diff_vs_pixmuscle'))} | "
                      f"{c['newton_iterations_per_step']} | {c['wall_s']} | {c['peak_rss_GB']} | {load} | "
                      f"{c['status'][:40]} |")
+    lines += extrapolation_lines(cases)
     for size in dict.fromkeys(c.get("size") for c in cases if "force_curve_N" in c):
         cs = [c for c in cases if c.get("size") == size and "force_curve_N" in c]
         alpha = max((c["alpha"] for c in cs), key=len)
@@ -718,7 +771,7 @@ def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--cases", nargs="+", default=DEFAULT_CASES,
-                   help="pixmuscle:nodal, pixmuscle:projected, felupe:RXxRYxRZ, legSIZE:pixmuscle, "
+                   help="pixmuscle:nodal, pixmuscle:projected, felupe:RXxRYxRZ, legSIZE:pixmuscle[:RXxRYxRZ], "
                         "legSIZE:felupe:RXxRYxRZ (default: %(default)s)")
     p.add_argument("--steps", type=int, default=4, help="tendon: load steps to the 2-cm stretch (default: %(default)s)")
     p.add_argument("--threads", type=int, default=1, help="MKL/OpenMP/numba threads per case (default: %(default)s)")
@@ -781,7 +834,7 @@ def main(argv=None):
                       load_average={"start": [round(x, 2) for x in load0], "end": [round(x, 2) for x in os.getloadavg()]})
         if is_leg(spec):
             method, arg = parse_case(spec)
-            res.update(common, size=arg if method == "leg:pixmuscle" else arg[0], steps=LEG_STEPS, alpha_to=LEG_ALPHA,
+            res.update(common, size=arg[0], steps=LEG_STEPS, alpha_to=LEG_ALPHA,
                        voxel_size_cm=list(_bench_solve().SPACING),
                        command=f".venv/bin/python benchmarks/bench_vs_fe.py --cases {spec} --threads {args.threads} "
                                "--append")
