@@ -32,7 +32,7 @@ from ..errors import InputError, SolverError
 from ..model.model import Model
 from ..model.tissues import MUSCLE, NODE_TISSUES, TISSUE_NAMES
 from . import newton as _newton
-from .assembly import Assembler, support_pattern
+from .assembly import Assembler, local_operator, support_pattern
 from .boundary import SIGN_CONVENTION, Constraints, build_constraints, end_rule, penalty_number, vertex_rule_faces
 from .config import SolveConfig, SupportConfig
 from .ellipticity import acoustic_minimum, directions
@@ -45,6 +45,9 @@ from .tangent import ConstantStiffness, MatrixFreeTangent, ProductForm, spd_surr
 from .volumetric import PatchProjection, VolumetricState
 
 _LOG = logging.getLogger(__name__)
+# voxels around its cell or point within which a factor keeps its entries in the preconditioner's
+# filtered stand-in (assembly.local_rows): the stand-in then couples nodes at most 2 voxels apart
+LOCAL_RADIUS = 1
 
 
 def make_materials(cfg_materials, projected: bool = False) -> dict:
@@ -144,11 +147,20 @@ class MechanicalSystem:
                 held[constraints.node[at_node & constraints.mask.any(axis=1)]] = True
             self.volumetric = PatchProjection(model.ijk, scni.volume, bulk, patch, single=held)
         self.stab = None
+        self._stab_local = None
+        self._penalty_local = None
         if stabilization is not None:
             H, C = stabilization_operators(scni, A0, coefficient=stabilization.coefficient,
                                            modulus=stabilization.modulus)
             self.stab = ConstantStiffness(H, C)
             if self.stab.scalar:  # L holds all of it: the face gradients are not needed again (0.3 GB at 74k)
+                # the preconditioner's stand-in takes L from the factors cut near their cells
+                # (local_operator): L itself cut to near pairs has negative eigenvalues
+                wide = self._wide()
+                cut = [[local_operator(M, np.arange(self.n_nodes), model.ijk, LOCAL_RADIUS, wide) for M in grp]
+                       for grp in H]
+                self._stab_local = ConstantStiffness(cut, C).L.matrix
+                del cut
                 scni.dpsi_faces = None
         self._main = None
         self._support = None
@@ -182,10 +194,10 @@ class MechanicalSystem:
         key = (reach, patches)
         if key not in self._assemblers:
             t0 = time.perf_counter()
-            wide = None
-            sup = np.atleast_2d(self.scni.support)
-            if reach is not None and sup.shape[0] == self.n_nodes:  # enlarged supports couple further than `reach`
-                wide = np.any(sup > sup.min(axis=0) * (1 + 1e-9), axis=1)
+            wide = None if reach is None else self._wide()
+            if reach is not None and reach // 2 != LOCAL_RADIUS:
+                raise ValueError(f"a filtered pattern needs reach {2 * LOCAL_RADIUS} or {2 * LOCAL_RADIUS + 1}, "
+                                 f"got {reach}")
             # the preconditioner (reach) takes the volumetric stiffness node by node: no patch pattern
             asm = Assembler(self.support, ijk=self.model.ijk, reach=reach, wide=wide,
                             patches=self.volumetric.structure() if patches else None)
@@ -195,19 +207,37 @@ class MechanicalSystem:
             self.timings["pattern_s"] = self.timings.get("pattern_s", 0.0) + time.perf_counter() - t0
         return self._assemblers[key]
 
+    def _wide(self) -> np.ndarray | None:
+        """Nodes with enlarged RK supports (they couple further than the nominal reach), or None."""
+        sup = np.atleast_2d(self.scni.support)
+        if sup.shape[0] != self.n_nodes:
+            return None
+        return np.any(sup > sup.min(axis=0) * (1 + 1e-9), axis=1)
+
+    def _local_penalty(self) -> list[sp.csr_matrix]:
+        """Penalty stiffness per component from the constraint points' shape functions cut near the
+        points' nodes (:func:`.assembly.local_operator`), for filtered patterns (built once)."""
+        if self._penalty_local is None:
+            c = self.constraints
+            psi = local_operator(c.psi, c.node, self.model.ijk, LOCAL_RADIUS, self._wide())
+            self._penalty_local = [(psi.T @ sp.diags(c.beta * c.weight * c.mask[:, j]) @ psi).tocsr() for j in range(3)]
+        return self._penalty_local
+
     def constant_stiffness(self, asm: Assembler) -> np.ndarray:
         """Block data of the constant part of the stiffness, penalty + NSNI, on the pattern of
-        ``asm`` (far pairs of a filtered pattern dropped), N/cm; shape (nnzb, 3, 3).
+        ``asm``, N/cm; shape (nnzb, 3, 3). On a filtered pattern it is made of factors cut near
+        their cells and points (:func:`.assembly.local_rows`), so it stays positive semi-definite.
 
         Made anew for every assembly rather than kept with the pattern: with the default NSNI
         modulus it is a merge of the scalar operators (``stab.L`` and the penalty) into the
         pattern, and not keeping it saves a copy of the pattern's data (0.6 GB at 74k nodes).
         """
         out = asm.zeros()
-        for j, Kj in enumerate(self.penalty):
+        filtered = asm.reach >= 0
+        for j, Kj in enumerate(self._local_penalty() if filtered else self.penalty):
             asm.align_scalar(Kj, j, j, out)
         if self.stab is not None and self.stab.scalar:
-            asm.add_identity_blocks(self.stab.L.matrix, out)
+            asm.add_identity_blocks(self._stab_local if filtered else self.stab.L.matrix, out)
         elif self.stab is not None:
             stabilization_stiffness(self.scni, asm, self.A0, coefficient=self.stabilization.coefficient,
                                     modulus=self.stabilization.modulus, out=out)
@@ -355,11 +385,17 @@ class MechanicalSystem:
         return self.scni.volume[:, None, None] * A.reshape(-1, 9, 9)
 
     def preconditioner_matrix(self, state: State, reach: int = 2, volumetric: str = "nodal") -> sp.bsr_matrix:
-        """Filtered positive stand-in of the tangent for preconditioning (BSR, 3N × 3N), N/cm.
+        """Filtered positive definite stand-in of the tangent for preconditioning (BSR, 3N × 3N), N/cm.
 
-        Only blocks between nodes at most ``reach`` voxels apart are kept, and each node's
-        tangent is replaced by :func:`.tangent.spd_surrogate`; penalty and NSNI terms are
-        included (filtered). docs/linsolve-research.md §2(c) explains the choice. With the
+        Only blocks between nodes at most ``reach`` voxels apart (2 or 3) are made, each node's
+        tangent is replaced by :func:`.tangent.spd_surrogate`, and penalty and NSNI terms are
+        included. Every product Bᵀ C B (cells, stabilisation, constraint points) is made from
+        its factor B cut to the nodes within one voxel of its cell or point
+        (:func:`.assembly.local_rows`), not by leaving out the far node pairs of the product: each
+        term stays positive semi-definite, so the stand-in is positive definite wherever the
+        tangent is. (Left-out pairs gave 41 negative pivots on the 21k leg at 0.078-cm pixels, and
+        FGMRES iterations that grew with the model: docs/performance.md, "Multigrid".)
+        docs/linsolve-research.md §2(c) explains the filter. With the
         projected volumetric energy the stand-in carries each node's own volumetric stiffness
         K_L a_L⊗a_L instead of the patch terms, whose node pairs reach beyond the filter (on the
         demo leg CG then needs 473 iterations to 10⁻⁶ against 131 with the nodal energy; filtered
