@@ -164,7 +164,7 @@ def _add_identity(indptr, indices, mptr, mind, mdata, out):  # pragma: no cover 
 
 
 def local_rows(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, own: np.ndarray, ijk: np.ndarray,
-               radius: int, fixed: np.ndarray | None = None) -> np.ndarray:
+               radius: int, fixed: np.ndarray | None = None, tol: float = 0.0) -> np.ndarray:
     """Cut every row of a row-wise operator to the nodes near the row's own node, keeping its sums.
 
     A filtered stiffness that keeps only the node pairs of K = Σ_r B_rᵀ C_r B_r at most a few voxels
@@ -177,7 +177,9 @@ def local_rows(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, own: np.n
     its own node along every axis, and what is cut is added to the own node's entry, so that
     Σ_r B̂_rᵀ C_r B̂_r couples nodes at most 2 ``radius`` voxels apart and is positive
     semi-definite wherever the C_r are. The row sums stay, so a uniform field (a translation) keeps
-    the energy it had (none for gradients; the penalty's for shape functions).
+    the energy it had (none for gradients; the penalty's for shape functions). ``tol`` also cuts the
+    entries smaller than ``tol`` times the row's largest (the same way), which thins the pattern:
+    on the ±2-voxel pattern of the leg 0.15 leaves ~125 of ~335 non-zeros per row.
 
     Parameters
     ----------
@@ -195,6 +197,9 @@ def local_rows(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, own: np.n
     fixed : (N,) bool, optional
         Nodes whose entries are never cut (enlarged RK supports, whose every pair a filtered
         pattern keeps).
+    tol : float
+        Entries below ``tol`` times the largest of their row (largest of their k values) are cut
+        too, wherever they are.
 
     Returns
     -------
@@ -209,6 +214,11 @@ def local_rows(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, own: np.n
     near = np.abs(ijk[at] - ijk[cols]).max(axis=1) <= radius
     if fixed is not None:
         near |= np.asarray(fixed, bool)[cols]
+    if tol > 0.0:
+        size = np.abs(v).max(axis=1)
+        largest = np.zeros(len(own))
+        np.maximum.at(largest, rows, size)
+        near &= size >= tol * largest[rows]
     near |= self_entry
     where = np.full(len(own), -1, np.int64)
     where[rows[self_entry]] = np.flatnonzero(self_entry)
@@ -220,7 +230,7 @@ def local_rows(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, own: np.n
 
 
 def local_operator(M: sp.spmatrix, own: np.ndarray, ijk: np.ndarray, radius: int,
-                   fixed: np.ndarray | None = None) -> sp.csr_matrix:
+                   fixed: np.ndarray | None = None, tol: float = 0.0) -> sp.csr_matrix:
     """:func:`local_rows` of a sparse (n_rows × N) operator, as CSR (an own-node entry is added where
     a row has none)."""
     C = sp.coo_matrix(M)
@@ -228,9 +238,21 @@ def local_operator(M: sp.spmatrix, own: np.ndarray, ijk: np.ndarray, radius: int
     m = M.shape[0]
     C = sp.coo_matrix((np.r_[C.data, np.zeros(m)], (np.r_[C.row, np.arange(m)], np.r_[C.col, own])), shape=M.shape)
     C.sum_duplicates()  # keeps the explicit zeros
-    data = local_rows(C.row, C.col, C.data, own, ijk, radius, fixed)
+    data = local_rows(C.row, C.col, C.data, own, ijk, radius, fixed, tol)
     keep = data != 0.0
     return sp.csr_matrix((data[keep], (C.row[keep], C.col[keep])), shape=M.shape)
+
+
+def nonzero_blocks(K: sp.bsr_matrix) -> sp.bsr_matrix:
+    """``K`` (BSR, 3 × 3 blocks) without its blocks that are all zero (a filtered pattern's pairs
+    that no cut factor couples, :func:`local_rows`); the diagonal blocks stay."""
+    n = K.shape[0] // 3
+    rows = np.repeat(np.arange(n, dtype=np.int32), np.diff(K.indptr))
+    keep = np.any(K.data != 0.0, axis=(1, 2)) | (rows == K.indices)
+    if keep.all():
+        return K
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(rows[keep], minlength=n))])
+    return sp.bsr_matrix((K.data[keep], K.indices[keep], indptr), shape=K.shape)
 
 
 def _int_dtype(n: int):
@@ -280,6 +302,9 @@ class Assembler:
     square : bool
         With ``rows``: keep only the blocks whose column node is one of them too (the diagonal
         block K_RR of the node set R, which is what a factorisation on R needs).
+    local_tol : float
+        With ``reach``: the ``tol`` of :func:`local_rows` in :meth:`local` (the fills of a
+        filtered pattern).
 
     Attributes
     ----------
@@ -289,7 +314,8 @@ class Assembler:
 
     def __init__(self, support: sp.csr_matrix, ijk: np.ndarray | None = None, reach: int | None = None,
                  wide: np.ndarray | None = None, patches: sp.csr_matrix | None = None, rows: np.ndarray | None = None,
-                 square: bool = False):
+                 square: bool = False, local_tol: float = 0.0):
+        self.local_tol = float(local_tol)
         S = sp.csr_matrix(support)
         S.sort_indices()
         self.n_cells, self.n_nodes = S.shape
@@ -416,7 +442,8 @@ class Assembler:
         if self.n_cells != self.n_nodes:
             raise ValueError("a filtered fill needs one cell per node")
         rows = np.repeat(np.arange(self.n_cells, dtype=np.int64), np.diff(self.ptr))
-        return local_rows(rows, self.nodes, g, np.arange(self.n_cells), self.ijk, self.reach // 2, self.wide)
+        return local_rows(rows, self.nodes, g, np.arange(self.n_cells), self.ijk, self.reach // 2, self.wide,
+                          self.local_tol)
 
     def _row_parts(self) -> list[np.ndarray]:
         """Row masks of the fills, one per thread: contiguous node ranges of about equal numbers of

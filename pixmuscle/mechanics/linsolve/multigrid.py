@@ -248,12 +248,12 @@ def drop_weak_blocks(K: sp.bsr_matrix, tol: float) -> sp.bsr_matrix:
     ‖K_ab‖_F < tol √(‖K_aa‖_F ‖K_bb‖_F) is dropped, the diagonal blocks are kept.
 
     Most blocks of the ±2-voxel stand-in are weak: on the 74k leg ``tol`` = 0.005 keeps 144 of
-    335 non-zeros per row, and BoomerAMG on what is left cycles in 0.22 s instead of 0.38 s for 56
-    FGMRES iterations instead of 53 on the first Newton system (21k: 129 of 319, 0.049 s against
-    0.098 s, 42 iterations against 39; docs/performance.md, "Weak blocks"). The V-cycle's cost is its fine level,
-    proportional to the non-zeros. Adding the dropped blocks to the diagonal (to keep diagonal
-    dominance) costs far more iterations (161 against 39 at 21k with ``tol`` = 0.01), so nothing is
-    added; the V-cycle only preconditions FGMRES, which does not need it symmetric positive.
+    335 non-zeros per row, and the V-cycle's cost is its fine level, proportional to the non-zeros.
+    But a stand-in with blocks left out is not positive definite: on the 21k leg at 0.078-cm pixels
+    ``tol`` = 0.005 gives it 35 negative pivots, and FGMRES then needs 53 instead of 36 iterations
+    on the first Newton system (docs/performance.md, "The stand-in is positive definite"). So
+    ``mixed_amg`` keeps every block by default (``drop_tol`` 0). Adding the dropped blocks to the
+    diagonal costs far more iterations (161 against 39 at 21k with ``tol`` = 0.01).
 
     Parameters
     ----------
