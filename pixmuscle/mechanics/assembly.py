@@ -243,6 +243,25 @@ def local_operator(M: sp.spmatrix, own: np.ndarray, ijk: np.ndarray, radius: int
     return sp.csr_matrix((data[keep], (C.row[keep], C.col[keep])), shape=M.shape)
 
 
+def support_values(ptr: np.ndarray, nodes: np.ndarray, n_nodes: int, mats) -> np.ndarray:
+    """Values of three (N_cells × N_nodes) operators on a support layout (CSR structure ``ptr``,
+    ``nodes`` with sorted rows), shape (nnz(S), 3).
+
+    Entries of ``mats[k]`` outside the support raise ``ValueError`` (a programming error).
+    """
+    keys = np.repeat(np.arange(len(ptr) - 1, dtype=np.int64), np.diff(ptr)) * n_nodes + np.asarray(nodes, np.int64)
+    out = np.zeros((keys.shape[0], 3))
+    for k, M in enumerate(mats):
+        C = sp.coo_matrix(M)
+        q = C.row.astype(np.int64) * n_nodes + C.col
+        pos = np.searchsorted(keys, q)
+        pos = np.minimum(pos, len(keys) - 1)
+        if not np.all(keys[pos] == q):
+            raise ValueError("operator has entries outside the cell supports")
+        np.add.at(out[:, k], pos, C.data)
+    return out
+
+
 def nonzero_blocks(K: sp.bsr_matrix) -> sp.bsr_matrix:
     """``K`` (BSR, 3 × 3 blocks) without its blocks that are all zero (a filtered pattern's pairs
     that no cut factor couples, :func:`local_rows`); the diagonal blocks stay."""
@@ -305,6 +324,9 @@ class Assembler:
     local_tol : float
         With ``reach``: the ``tol`` of :func:`local_rows` in :meth:`local` (the fills of a
         filtered pattern).
+    pattern : sparse (N × N), optional
+        The node pairs to hold, in place of every pair that shares a cell's support (a filtered
+        pattern of cut factors: only the pairs they couple). A fill must not reach outside it.
 
     Attributes
     ----------
@@ -314,7 +336,7 @@ class Assembler:
 
     def __init__(self, support: sp.csr_matrix, ijk: np.ndarray | None = None, reach: int | None = None,
                  wide: np.ndarray | None = None, patches: sp.csr_matrix | None = None, rows: np.ndarray | None = None,
-                 square: bool = False, local_tol: float = 0.0):
+                 square: bool = False, local_tol: float = 0.0, pattern: sp.spmatrix | None = None):
         self.local_tol = float(local_tol)
         S = sp.csr_matrix(support)
         S.sort_indices()
@@ -323,7 +345,7 @@ class Assembler:
         self.ptr = S.indptr.astype(it)
         self.nodes = S.indices.astype(it)
         Sb = sp.csr_matrix((np.ones(S.nnz, np.float32), S.indices, S.indptr), shape=S.shape)
-        P = (Sb.T.tocsr() @ Sb).tocsr()
+        P = (Sb.T.tocsr() @ Sb).tocsr() if pattern is None else sp.csr_matrix(pattern, dtype=np.float32)
         self.pptr = self.pnodes = None
         if patches is not None:
             M = sp.csr_matrix(patches, dtype=np.float32, copy=True)
@@ -391,21 +413,9 @@ class Assembler:
         return np.zeros((self.nnzb, 3, 3))
 
     def on_support(self, mats) -> np.ndarray:
-        """Values of three (N_cells × N_nodes) operators on the support layout, shape (nnz(S), 3).
-
-        Entries of ``mats[k]`` outside the support raise ``ValueError`` (a programming error).
-        """
-        keys = np.repeat(np.arange(self.n_cells, dtype=np.int64), np.diff(self.ptr)) * self.n_nodes + self.nodes
-        out = np.zeros((keys.shape[0], 3))
-        for k, M in enumerate(mats):
-            C = sp.coo_matrix(M)
-            q = C.row.astype(np.int64) * self.n_nodes + C.col
-            pos = np.searchsorted(keys, q)
-            pos = np.minimum(pos, len(keys) - 1)
-            if not np.all(keys[pos] == q):
-                raise ValueError("operator has entries outside the cell supports")
-            np.add.at(out[:, k], pos, C.data)
-        return out
+        """Values of three (N_cells × N_nodes) operators on the support layout, shape (nnz(S), 3)
+        (:func:`support_values`)."""
+        return support_values(self.ptr, self.nodes, self.n_nodes, mats)
 
     def fill(self, g: np.ndarray, A: np.ndarray, w: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Add Σ_L w_L B̃_Lᵀ A_L B̃_L to block data.
