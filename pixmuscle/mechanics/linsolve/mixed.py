@@ -37,10 +37,10 @@ G M_A⁻¹ Gᵀ in Ŝ is estimated by probing with 27 colours of the patch grid 
 default; :func:`probed_schur_diagonal`, ``probe_spacing`` = 3), once per build of the hierarchy at
 the state it is built from (27 applications of M_A⁻¹), and kept with it; ``schur: mass`` takes
 the scaled pressure mass c/(μ_p V_p) instead (c = ``schur_scale``). On the leg with the default
-penalty number, FGMRES reaches 10⁻⁶ on the first Newton system (α = 0.095) in 31, 38 and 42
-iterations at K/μ ≈ 95, 951 and 9,506 (5,460 nodes; 79, 116 and 131 with ``schur: mass``), in 47
-at K/μ ≈ 951 on 21,169 nodes (205 with ``schur: mass``) and in 89 on 73,753 nodes (115 with 8
-colours probed at every Newton system; docs/performance.md, "What is not met yet").
+penalty number, FGMRES reaches 10⁻⁶ on the first Newton system (α = 0.095), stopped on the mixed
+residual, in 33, 34 and 34 iterations at K/μ ≈ 95, 951 and 9,506 (5,460 nodes; 79, 116 and 131
+with ``schur: mass`` and the condensed stop), in 38 at K/μ ≈ 951 on 21,169 nodes and in 50 on
+73,753 nodes (docs/performance.md, "The stand-in is positive definite").
 
 Scaling. The unknowns are Δd (cm) and q̃ = q / w (cm), and the second row is multiplied by w,
 w = mean_p(μ_p V_p) / s (N, s the smallest voxel edge): the system stays symmetric,
