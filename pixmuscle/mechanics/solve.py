@@ -48,7 +48,7 @@ _LOG = logging.getLogger(__name__)
 # the preconditioner's filtered stand-in (assembly.local_rows): each factor keeps its entries at the
 # nodes within LOCAL_RADIUS voxels of its cell or point (the stand-in then couples nodes at most 2
 # voxels apart) that are at least LOCAL_TOL times its row's largest: ~125 instead of ~335 non-zeros
-# per row, and on the 0.078-cm leg 48 and 54 FGMRES iterations at 21k and 74k nodes against 36
+# per row, and on the 0.078-cm leg 48 and 55 FGMRES iterations at 21k and 74k nodes against 36
 # and 44 with every entry near (docs/performance.md, "The stand-in is positive definite")
 LOCAL_RADIUS = 1
 LOCAL_TOL = 0.15
@@ -206,8 +206,7 @@ class MechanicalSystem:
             asm = Assembler(self.support, ijk=self.model.ijk, reach=reach, wide=wide,
                             patches=self.volumetric.structure() if patches else None, local_tol=LOCAL_TOL,
                             pattern=None if reach is None else self._local_pattern(wide))
-            if self._g is None:
-                self._g = asm.on_support(self.scni.G)
+            self._support_gradients()
             self._assemblers[key] = asm
             self.timings["pattern_s"] = self.timings.get("pattern_s", 0.0) + time.perf_counter() - t0
         return self._assemblers[key]
@@ -229,7 +228,7 @@ class MechanicalSystem:
         S = sp.csr_matrix(self.support)
         S.sort_indices()
         rows = np.repeat(np.arange(S.shape[0], dtype=np.int64), np.diff(S.indptr))
-        cut = local_rows(rows, S.indices, self._support_gradients(S), np.arange(S.shape[0]), self.model.ijk,
+        cut = local_rows(rows, S.indices, self._support_gradients(), np.arange(S.shape[0]), self.model.ijk,
                          LOCAL_RADIUS, wide, LOCAL_TOL)
         kept = np.any(cut != 0.0, axis=1)
         Sc = sp.csr_matrix((np.ones(kept.sum(), np.float32), (rows[kept], S.indices[kept])), shape=S.shape)
@@ -239,9 +238,11 @@ class MechanicalSystem:
         P.data[:] = 1.0
         return P
 
-    def _support_gradients(self, S: sp.csr_matrix) -> np.ndarray:
-        """The smoothed gradients on the support layout (sorted CSR ``S``), kept."""
+    def _support_gradients(self) -> np.ndarray:
+        """The smoothed gradients on the support layout (:meth:`.Assembler.on_support`), made once."""
         if self._g is None:
+            S = sp.csr_matrix(self.support)
+            S.sort_indices()
             self._g = support_values(S.indptr, S.indices, S.shape[1], self.scni.G)
         return self._g
 
