@@ -32,6 +32,7 @@ from test_mixed_solver import _system  # noqa: E402
 
 from pixmuscle.errors import SolverError  # noqa: E402
 from pixmuscle.mechanics.linsolve import make_solver  # noqa: E402
+from pixmuscle.parallel import import_petsc  # noqa: E402
 
 
 def first_newton(scale: float, beta: float | None, options: dict, region_solves: bool, schur: str) -> str:
@@ -62,7 +63,7 @@ def main() -> None:
     if not petsc.available():
         print(f"bench_petsc_mixed: skipped, {petsc.INSTALL_HINT}")
         return
-    from petsc4py import PETSc
+    PETSc = import_petsc()
 
     options = json.loads(sys.argv[1]) if len(sys.argv) > 1 else {}
     rank, size = PETSc.COMM_WORLD.getRank(), PETSc.COMM_WORLD.getSize()

@@ -26,11 +26,33 @@ def launched_size() -> int:
     return 1
 
 
+def import_petsc():
+    """petsc4py's ``PETSc`` module, PETSc initialised (once per process) without its signal handlers.
+
+    PETSc's default start installs handlers for SIGPIPE, SIGSEGV, SIGFPE and others, and its
+    finalisation leaves SIGPIPE at the system default (end the process) instead of Python's ignore.
+    A Dask or browser connection closed by its peer then kills the interpreter (``make: … Broken
+    pipe``) instead of raising ``BrokenPipeError``. ``-no_signal_handler`` keeps Python's handling.
+
+    Raises
+    ------
+    ImportError
+        When petsc4py is not installed.
+    """
+    import petsc4py
+
+    if "petsc4py.PETSc" not in sys.modules:
+        petsc4py.init(["-no_signal_handler"])
+    from petsc4py import PETSc
+
+    return PETSc
+
+
 def _comm():
     if launched_size() <= 1:
         return None
     try:
-        from petsc4py import PETSc
+        PETSc = import_petsc()
     except ImportError:
         from .mechanics.linsolve.petsc import INSTALL_HINT
 

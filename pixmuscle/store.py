@@ -185,12 +185,9 @@ def library_versions() -> dict[str, str]:
         out["vtk"] = _dist_version("vtk") or getattr(sys.modules["vtkmodules"], "__version__", "?")
     if "petsc4py" in sys.modules:
         out["petsc4py"] = _dist_version("petsc4py") or "?"
-        try:
-            from petsc4py import PETSc
-
+        PETSc = sys.modules.get("petsc4py.PETSc")  # imported means initialised; its version, if so
+        if PETSc is not None:
             out["petsc"] = ".".join(map(str, PETSc.Sys.getVersion()))
-        except Exception:  # petsc4py imported but not initialised: its own version is enough
-            pass
     return out
 
 

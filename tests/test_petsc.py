@@ -259,3 +259,24 @@ def test_petsc_backend_without_petsc4py_is_a_config_error_with_install_hint(monk
     monkeypatch.setattr(petsc, "available", lambda: False)
     with pytest.raises(Exception, match=r"solve\.solver: backend: petsc.*petsc4py.*make venv"):
         parse_section(SolveConfig, dict(SWEEP, solver={"backend": "petsc"}), "solve")
+
+
+def test_petsc_leaves_a_closed_pipe_to_python():
+    """With PETSc started by pixmuscle, a write to a pipe closed by its reader (a Dask or browser
+    connection at shutdown, a CI log reader) raises BrokenPipeError as in plain Python: PETSc's own
+    SIGPIPE handler would abort the interpreter through MPI (exit 59, seen as 'Broken pipe' in CI)."""
+    if not petsc.available():
+        pytest.skip(f"petsc4py not importable ({petsc.INSTALL_HINT})")
+    script = ("import os\n"
+              "from pixmuscle.parallel import import_petsc\n"
+              "PETSc = import_petsc()\n"
+              "assert PETSc.Sys.getVersion()\n"
+              "r, w = os.pipe()\n"
+              "os.close(r)\n"
+              "try:\n"
+              "    os.write(w, b'x')\n"
+              "except BrokenPipeError:\n"
+              "    print('BrokenPipeError')\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.strip() == "BrokenPipeError"

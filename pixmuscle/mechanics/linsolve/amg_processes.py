@@ -40,6 +40,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...errors import SolverError
+from ...parallel import import_petsc
 
 _CMD, _DATA = 11, 12
 _CHUNK = 1 << 26  # elements per message: MPI counts are int
@@ -207,7 +208,7 @@ def row_blocks(indptr: np.ndarray, parts: int) -> np.ndarray:
 
 def hypre_matrix(comm, indptr, indices, data, n_local: int, n_total: int):
     """This rank's block rows (BSR arrays of 3 × 3 blocks, global block columns) as a PETSc matrix on ``comm``."""
-    from petsc4py import PETSc
+    PETSc = import_petsc()
 
     idx = PETSc.IntType
     return PETSc.Mat().createBAIJ(size=((3 * n_local, 3 * n_total), (3 * n_local, 3 * n_total)), bsize=3,
@@ -217,7 +218,7 @@ def hypre_matrix(comm, indptr, indices, data, n_local: int, n_total: int):
 
 def hypre_pc(A, prefix: str, options: dict):
     """BoomerAMG on the processes of ``A`` (converted in place to hypre's matrix type): PC and work vectors."""
-    from petsc4py import PETSc
+    PETSc = import_petsc()
 
     from .petsc import set_options
 
@@ -249,7 +250,7 @@ class SpreadBoomerAMG:
     """
 
     def __init__(self, K, workers: WorkerGroup, prefix: str, options: dict):
-        from petsc4py import PETSc
+        PETSc = import_petsc()
 
         if callable(K):
             K = K()
@@ -328,7 +329,7 @@ def _serve() -> None:
 
 
 def _commands(comm) -> None:
-    from petsc4py import PETSc
+    PETSc = import_petsc()
 
     held = {}
     while True:

@@ -68,7 +68,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...errors import InputError
-from ...parallel import launched_size
+from ...parallel import import_petsc, launched_size
 from ..threaded import thread_count
 from .amg_processes import SpreadBoomerAMG, group, hypre_matrix, hypre_pc
 from .amg_processes import available as amg_processes_available
@@ -96,7 +96,7 @@ BOOMERAMG_OPTIONS = {"pc_hypre_boomeramg_nodal_coarsen": 0, "pc_hypre_boomeramg_
 def hypre_available() -> bool:
     """True when petsc4py imports and its PETSc has hypre."""
     try:
-        from petsc4py import PETSc
+        PETSc = import_petsc()
     except ImportError:
         return False
     pc = PETSc.PC().create(comm=PETSc.COMM_SELF)
@@ -206,7 +206,7 @@ class BoomerAMG:
     """
 
     def __init__(self, K):
-        from petsc4py import PETSc
+        PETSc = import_petsc()
 
         if callable(K):
             K = K()

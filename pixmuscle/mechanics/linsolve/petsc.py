@@ -23,6 +23,7 @@ from dataclasses import field
 import numpy as np
 
 from ...errors import SolverError
+from ...parallel import import_petsc
 from .base import BACKENDS, Iterative, LinearSolver
 
 #: what to do when petsc4py is missing (config error of ``solve.solver.backend: petsc``)
@@ -46,7 +47,7 @@ def set_options(prefix: str, defaults: dict, options: dict | None) -> dict:
     under ``prefix``, replacing whatever was set under it before (another solver of this process);
     returns the merged mapping. ``true`` (or an empty value) sets a bare flag; whole floats are
     written as integers."""
-    from petsc4py import PETSc
+    PETSc = import_petsc()
 
     merged = {**defaults, **(options or {})}
     db = PETSc.Options()
@@ -129,7 +130,7 @@ class PETScSolver(LinearSolver):
 
     def __init__(self, X, ijk, rtol: float = 1e-10, maxiter: int = 2000, options: dict | None = None):
         super().__init__()
-        from petsc4py import PETSc
+        PETSc = import_petsc()
 
         self.PETSc = PETSc
         self.comm = PETSc.COMM_WORLD
