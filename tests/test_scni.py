@@ -347,3 +347,49 @@ def test_identity_blocks_merge_a_scalar_operator_into_full_and_filtered_patterns
             np.all(np.abs(m.ijk[:, None, :] - m.ijk[None, :, :]) <= reach, axis=2)
         np.testing.assert_array_equal(K, np.kron(np.where(near, dense, 0.0), np.eye(3)))
         assert reach is None or np.any(dense[~near] != 0)  # the filter did drop entries
+
+
+def test_bone_faces_by_the_vertex_rule_equal_the_penalty_rows_and_cover_the_contact_area():
+    """``bone_surface`` held at the vertices of the faces it shares with bone (``penalty.at`` auto):
+    the faces are exactly the node–bone face contacts of the label volume (counted here voxel by
+    voxel), SCNI integrates them by the same trapezoidal rule (the patch test stays exact), the
+    penalty weights sum to the contact area and the penalty rows Σ_c w_c Ψ(x_c) equal SCNI's
+    boundary rows Σ_f A_f Ψ̄(f) on those faces. ``nodes`` holds the set at its nodes instead."""
+    from pixmuscle.mechanics.boundary import bone_faces, build_constraints, vertex_rule_faces
+    from pixmuscle.mechanics.solve import node_supports
+    from pixmuscle.model.build import model_from_labels
+
+    labels = np.full((7, 6, 6), MUSCLE)
+    labels[0, :, :] = 0
+    labels[2:4, 2:4, :] = 4                                              # a bone through the body
+    labels[5, 4, 1:3] = 4                                                # and a small one at its side
+    h = np.array([0.1, 0.12, 0.25])
+    m = model_from_labels(labels, h, fibers=np.broadcast_to([0.0, 0.0, 1.0], labels.shape + (3,)))
+    contacts, area = 0, 0.0
+    for i, j, k in np.argwhere(labels == MUSCLE):
+        for axis in range(3):
+            for s in (-1, 1):
+                q = [i, j, k]
+                q[axis] += s
+                if 0 <= q[axis] < labels.shape[axis] and labels[tuple(q)] == 4:
+                    contacts += 1
+                    area += np.prod(np.delete(h, axis))
+    cfg = parse_section(SolveConfig, {"boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]},
+                                                              {"nodes": "bone_surface", "fix": ["x", "y"]}]}, "solve")
+    bcs = list(cfg.boundary_conditions)
+    faces = cell_faces(m.X, m.ijk, m.spacing)
+    bf = bone_faces(m, faces, m.sets["bone_surface"])
+    assert bf.size == contacts
+    vf = vertex_rule_faces(m, bcs, faces, at="auto")
+    assert np.isin(bf, vf).all() and vertex_rule_faces(m, bcs, faces, at="nodes").size == 0
+    sup, _ = node_supports(m, cfg)
+    s = build_scni(m.X, m.ijk, m.spacing, sup, faces=faces, vertex_faces=vf, face_gradients=True)
+    F0 = np.array([[1.1, 0.2, -0.05], [0.03, 0.95, 0.1], [0.0, -0.2, 1.3]])
+    assert np.abs(s.deformation_gradient(m.X @ (F0 - np.eye(3)).T) - F0).max() < 1e-10
+    con = build_constraints(m, bcs, faces, sup, 1.0, at="auto")
+    on_bone = con.group == 1
+    assert np.isclose(con.weight[on_bone].sum(), area, rtol=1e-12)
+    rows = con.psi[on_bone].T @ con.weight[on_bone]
+    np.testing.assert_allclose(s.psi_faces[bf].T @ faces.area[bf], rows, atol=1e-14)
+    at_nodes = build_constraints(m, bcs, faces, sup, 1.0, at="nodes")
+    np.testing.assert_array_equal(np.sort(at_nodes.node[at_nodes.group == 1]), m.sets["bone_surface"])

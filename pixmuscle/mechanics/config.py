@@ -148,7 +148,7 @@ class PenaltyConfig:
 
     factor: float = field(default=1.0, metadata={"gt": 0, "doc": "β = factor · (largest reference tangent modulus) / (smallest spacing)"})
     beta: float | None = field(default=None, metadata={"gt": 0, "doc": "explicit β in N/cm³ (overrides factor)"})
-    at: Literal["auto", "vertices", "centres", "nodes"] = field(default="auto", metadata={"doc": "auto = vertices: end sets (x_min..z_max) are constrained at the vertices of their end faces (trapezoidal rule; SCNI integrates those faces by the same rule, so a homogeneous deformation is reproduced exactly; the whole face is held, outer edges included), other sets at the nodes; centres: end sets at their end-face centres (midpoint rule; the outer edges of the end faces are left free); nodes: always at the nodes"})
+    at: Literal["auto", "vertices", "centres", "nodes"] = field(default="auto", metadata={"doc": "auto = vertices: end sets (x_min..z_max) are constrained at the vertices of their end faces (trapezoidal rule; SCNI integrates those faces by the same rule, so a homogeneous deformation is reproduced exactly; the whole face is held, outer edges included), bone_surface at the vertices of the faces it shares with bone (where hex8 FE holds the bone; by the same rule in SCNI), other sets at the nodes; centres: end sets and bone_surface at the centres of those faces (midpoint rule; the outer edges of the end faces are left free); nodes: always at the nodes"})
 
 
 @dataclasses.dataclass(frozen=True)
