@@ -324,7 +324,7 @@ def bone_faces(model, faces: Faces, idx: np.ndarray) -> np.ndarray:
     (F_b,) int64
         Sorted face indices into ``faces``.
     """
-    bone = getattr(model, "bone_ijk", None)
+    bone = model.bone_ijk
     idx = np.asarray(idx, np.int64)
     if bone is None or len(bone) == 0 or idx.size == 0:
         return np.zeros(0, np.int64)
