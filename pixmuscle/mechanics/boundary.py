@@ -221,7 +221,7 @@ def _boundary_area(faces: Faces, n_nodes: int) -> np.ndarray:
     """Total area of the boundary faces of each cell, cm², shape (N,)."""
     area = np.zeros(n_nodes)
     b = faces.boundary
-    cell = np.where(faces.low[b] >= 0, faces.low[b], faces.high[b])
+    cell = faces.cell_of(np.flatnonzero(b))
     np.add.at(area, cell, faces.area[b])
     return area
 
@@ -333,7 +333,7 @@ def bone_faces(model, faces: Faces, idx: np.ndarray) -> np.ndarray:
     is_bone[b[:, 0], b[:, 1], b[:, 2]] = True
     f = np.concatenate([faces.plus[:, idx].ravel(), faces.minus[:, idx].ravel()]).astype(np.int64)
     f = np.unique(f[faces.boundary[f]])
-    cell = np.where(faces.low[f] >= 0, faces.low[f], faces.high[f])
+    cell = faces.cell_of(f)
     beyond = np.asarray(model.ijk, np.int64)[cell] + 1
     beyond[np.arange(f.size), faces.axis[f]] += faces.normal_sign[f].astype(np.int64)
     return f[is_bone[beyond[:, 0], beyond[:, 1], beyond[:, 2]]]
@@ -342,7 +342,7 @@ def bone_faces(model, faces: Faces, idx: np.ndarray) -> np.ndarray:
 def _on_faces(faces: Faces, face: np.ndarray, spacing, rule: str):
     """Points, cells and weights (cm²) of a boundary rule on ``face``: their vertices, each once with
     Σ area/4 of the faces that share it (``rule = "vertices"``), or their centres with their areas."""
-    cell = np.where(faces.low[face] >= 0, faces.low[face], faces.high[face]).astype(np.int64)
+    cell = faces.cell_of(face)
     if rule == "centres":
         return faces.centre[face], cell, faces.area[face].copy()
     points, avg = face_vertex_rule(faces, face, spacing)
@@ -435,7 +435,7 @@ def constraint_points(model, bcs: list[BoundaryCondition], faces: Faces, *, at: 
             elif bc.nodes == "bone_surface" and end_rule(at) in ("centres", "vertices"):
                 face = bone_faces(model, faces, idx)
                 fpts, fnode, fw = _on_faces(faces, face, h, end_rule(at))
-                touching = np.where(faces.low[face] >= 0, faces.low[face], faces.high[face])
+                touching = faces.cell_of(face)
                 rest = np.setdiff1d(idx, touching)         # nodes without a face on bone (a set edited by hand)
                 w = bnd_area[rest].copy()
                 w[w == 0] = vol ** (2.0 / 3.0)

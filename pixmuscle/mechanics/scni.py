@@ -77,6 +77,11 @@ class Faces:
         """(F,) bool: faces with a cell on one side only."""
         return (self.low < 0) | (self.high < 0)
 
+    def cell_of(self, face: np.ndarray) -> np.ndarray:
+        """(F_b,) int64: the cell of each boundary face in ``face`` (its only cell)."""
+        face = np.asarray(face, np.int64)
+        return np.where(self.low[face] >= 0, self.low[face], self.high[face]).astype(np.int64)
+
     @property
     def normal_sign(self) -> np.ndarray:
         """(F,) float: +1 where the face's outward normal (boundary faces) is +e_k, −1 for −e_k, 0 inside."""
