@@ -163,6 +163,13 @@ def _add_identity(indptr, indices, mptr, mind, mdata, out):  # pragma: no cover 
                 out[p, 2, 2] += v
 
 
+def strong_entries(rows: np.ndarray, size: np.ndarray, n_rows: int, tol: float) -> np.ndarray:
+    """(nnz,) bool: the entries (row ``rows``, magnitude ``size`` ≥ 0) of at least ``tol`` times their row's largest."""
+    largest = np.zeros(n_rows)
+    np.maximum.at(largest, rows, size)
+    return size >= tol * largest[rows]
+
+
 def local_rows(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, own: np.ndarray, ijk: np.ndarray,
                radius: int, fixed: np.ndarray | None = None, tol: float = 0.0) -> np.ndarray:
     """Cut every row of a row-wise operator to the nodes near the row's own node, keeping its sums.
@@ -215,10 +222,7 @@ def local_rows(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, own: np.n
     if fixed is not None:
         near |= np.asarray(fixed, bool)[cols]
     if tol > 0.0:
-        size = np.abs(v).max(axis=1)
-        largest = np.zeros(len(own))
-        np.maximum.at(largest, rows, size)
-        near &= size >= tol * largest[rows]
+        near &= strong_entries(rows, np.abs(v).max(axis=1), len(own), tol)
     near |= self_entry
     where = np.full(len(own), -1, np.int64)
     where[rows[self_entry]] = np.flatnonzero(self_entry)

@@ -38,9 +38,9 @@ default; :func:`probed_schur_diagonal`, ``probe_spacing`` = 3), once per build o
 the state it is built from (27 applications of M_A⁻¹), and kept with it; ``schur: mass`` takes
 the scaled pressure mass c/(μ_p V_p) instead (c = ``schur_scale``). On the leg with the default
 penalty number, FGMRES reaches 10⁻⁶ on the first Newton system (α = 0.095), stopped on the mixed
-residual, in 33, 34 and 34 iterations at K/μ ≈ 95, 951 and 9,506 (5,460 nodes; 79, 116 and 131
-with ``schur: mass`` and the condensed stop), in 38 at K/μ ≈ 951 on 21,169 nodes and in 50 on
-73,753 nodes (docs/performance.md, "The stand-in is positive definite").
+residual, in 33, 33 and 33 iterations at K/μ ≈ 95, 951 and 9,506 (5,460 nodes; 79, 116 and 131
+with ``schur: mass`` and the condensed stop, an earlier version) and in 53 at K/μ ≈ 951 on 73,753
+nodes (docs/performance.md, "The stand-in is positive definite").
 
 Scaling. The unknowns are Δd (cm) and q̃ = q / w (cm), and the second row is multiplied by w,
 w = mean_p(μ_p V_p) / s (N, s the smallest voxel edge): the system stays symmetric,

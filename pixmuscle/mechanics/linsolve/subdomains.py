@@ -28,6 +28,7 @@ import dataclasses
 import numpy as np
 import scipy.sparse as sp
 
+from ..assembly import strong_entries
 from ..tangent import RowProduct
 from ..threaded import ThreadedCSR
 from .factorization import ENGINES, engine_name
@@ -64,10 +65,7 @@ def constraint_regions(system, held: np.ndarray | None = None, tol: float = REGI
     cons = system.constraints
     psi = cons.psi.tocsr()
     point = np.repeat(np.arange(psi.shape[0]), np.diff(psi.indptr))
-    size = np.abs(psi.data)
-    largest = np.zeros(psi.shape[0])
-    np.maximum.at(largest, point, size)
-    strong = size >= tol * largest[point]
+    strong = strong_entries(point, np.abs(psi.data), psi.shape[0], tol)
     sets = []
     for g in range(len(cons.names)):
         on = (cons.group == g) & cons.mask.any(axis=1)
