@@ -97,6 +97,43 @@ def test_fgmres_solves_a_nonsymmetric_system_with_a_changing_preconditioner():
     assert np.linalg.norm(A @ x - b) <= 1e-10 * np.linalg.norm(b)
 
 
+def test_gmres_with_a_fixed_preconditioner_keeps_no_preconditioned_basis_and_takes_the_same_steps():
+    """With a fixed preconditioner (a matrix here) ``flexible=False`` rebuilds the update as M (V y)
+    instead of keeping Z = M V: the same iterations as flexible GMRES through restarts, the same
+    solution to round-off, and the residual of ``numpy.linalg.solve``'s solution; a ``check`` sees
+    the same iterates either way. M is applied once more per restart and per check."""
+    rng = np.random.default_rng(4)
+    n = 150
+    A = np.diag(np.linspace(1.0, 80.0, n)) + rng.standard_normal((n, n)) / 6
+    M = np.linalg.inv(A + rng.standard_normal((n, n)) / 3)  # a fixed, inexact inverse
+    b = rng.standard_normal(n)
+
+    class Counted:
+        calls = 0
+
+        def __matmul__(self, v):
+            Counted.calls += 1
+            return M @ v
+
+    seen = {True: [], False: []}
+    out = {}
+    for flexible in (True, False):
+        Counted.calls = 0
+
+        def check(x, flexible=flexible):
+            seen[flexible].append(x.copy())
+            return None if len(seen[flexible]) > 1 else 1e-11
+
+        out[flexible] = (*fgmres(A, b, Counted(), 1e-9, 400, restart=8, check=check, flexible=flexible), Counted.calls)
+    (xf, itf, sf, mf), (x, its, status, m) = out[True], out[False]
+    assert sf == status == "converged" and its == itf and its > 8
+    assert np.linalg.norm(x - xf) <= 1e-9 * np.linalg.norm(xf)
+    assert np.linalg.norm(x - np.linalg.solve(A, b)) <= 1e-7 * np.linalg.norm(x)
+    assert len(seen[False]) == len(seen[True]) == 2
+    assert all(np.allclose(a, c, rtol=0, atol=1e-9 * np.abs(xf).max()) for a, c in zip(seen[True], seen[False], strict=True))
+    assert mf == itf and m == its + -(-its // 8) + len(seen[False])
+
+
 def test_fgmres_check_tightens_the_target_in_the_same_krylov_basis():
     """A caller whose stopping test is another norm of the residual (here: the last rows weighted
     10⁴ times, as the condensed residual of the mixed form weighs the pressure rows) gets an

@@ -120,12 +120,12 @@ class MechanicalSystem:
         Patch size (voxels) of the projected volumetric energy (:mod:`.volumetric`); ``None``:
         the nodal volumetric energy of the paper.
     held_patches : {"patch", "own"}
-        ``patch`` (default, as ``solve.volumetric.held``): nodes held by a boundary condition at
-        the node stay in their ordinary patch; ``own``: they keep a single-node patch.
+        ``own`` (default, as ``solve.volumetric.held``): nodes held by a boundary condition at
+        the node keep a single-node patch; ``patch``: they stay in their ordinary patch.
     """
 
     def __init__(self, model: Model, scni: SCNI, materials: dict, constraints: Constraints, A0: np.ndarray,
-                 stabilization=None, patch=None, held_patches: str = "patch"):
+                 stabilization=None, patch=None, held_patches: str = "own"):
         self.model = model
         self.scni = scni
         self.n_nodes = model.n_nodes

@@ -104,10 +104,12 @@ class PatchProjection:
         (2, 2, 3), as ``solve.volumetric.patch``.
     single : (N,) bool, optional
         Nodes that keep a patch of their own (their nodal volumetric energy): the nodes held by a
-        boundary condition at the node itself when ``solve.volumetric.held`` is ``own``; none with
-        ``held: patch``, the default. A patch that mixed a held node with free ones
-        would let the free half of the held node's cell trade volume with its neighbours at no
-        volumetric cost, a mechanism that an active muscle pulling on its clamp exploits.
+        boundary condition at the node itself when ``solve.volumetric.held`` is ``own`` (the
+        default); none with ``held: patch``. A patch that mixes held nodes with free ones lets
+        the free half of a held node's cell trade volume with its neighbours at no volumetric
+        cost, a mechanism that an active muscle pulling on its clamp exploits: a 6 × 6 × 5 block
+        clamped at its end nodes loses 9 % of its force at α = 0.95, the demo 73 %
+        (``tests/test_volumetric.py``).
 
     Attributes
     ----------

@@ -1,9 +1,11 @@
-"""Flexible GMRES with right preconditioning (Saad 1993), restarted.
+"""GMRES with right preconditioning, flexible (Saad 1993) or not, restarted.
 
 References
 ----------
 Y. Saad, "A flexible inner-outer preconditioned GMRES algorithm", SIAM J. Sci. Comput. 14(2),
 461–469, 1993.
+Y. Saad, *Iterative Methods for Sparse Linear Systems*, 2nd ed., SIAM, 2003, §9.3.2 (right
+preconditioned GMRES) and §9.4.1 (flexible GMRES).
 """
 
 from __future__ import annotations
@@ -12,13 +14,17 @@ import numpy as np
 
 
 def fgmres(A, b: np.ndarray, M, rtol: float, maxiter: int, restart: int = 60, x0: np.ndarray | None = None,
-           check=None):
-    """Solve A x = b by restarted flexible GMRES, preconditioned from the right by M.
+           check=None, flexible: bool = True):
+    """Solve A x = b by restarted GMRES, preconditioned from the right by M.
 
-    The preconditioner may change from one iteration to the next (an inner iteration, a
-    multigrid cycle): the preconditioned directions z_j = M v_j are kept, and the update is
-    x = x0 + Z y with y minimising ‖b − A (x0 + Z y)‖ over the Krylov basis (Arnoldi with
-    classical Gram–Schmidt applied twice, Givens rotations on the Hessenberg matrix).
+    Flexible (default): the preconditioner may change from one iteration to the next (an inner
+    iteration, a Krylov smoother): the preconditioned directions z_j = M v_j are kept, and the
+    update is x = x0 + Z y with y minimising ‖b − A (x0 + Z y)‖ over the Krylov basis (Arnoldi
+    with classical Gram–Schmidt applied twice, Givens rotations on the Hessenberg matrix). With
+    ``flexible=False`` M must be one fixed linear operator (a multigrid cycle with fixed
+    smoothing sweeps is): then Z = M V and the update is x = x0 + M (V y), so the directions
+    z_j are not kept — half the memory of the basis, for one more application of M per restart
+    (and per ``check``). In exact arithmetic both give the same iterates.
 
     Parameters
     ----------
@@ -38,6 +44,8 @@ def fgmres(A, b: np.ndarray, M, rtol: float, maxiter: int, restart: int = 60, x0
         whose own stopping test is another norm of the residual). The iteration goes on in the
         same Krylov basis, so a tightened target costs no restart (a restart forgets the
         directions of the few outlying eigenvalues, which GMRES then has to find again).
+    flexible : bool
+        Keep the preconditioned directions (M may vary); ``False`` for a fixed M.
 
     Returns
     -------
@@ -71,7 +79,7 @@ def fgmres(A, b: np.ndarray, M, rtol: float, maxiter: int, restart: int = 60, x0
         if its >= maxiter:
             return x, its, "maxiter"
         V = np.empty((m + 1, b.size))
-        Z = np.empty((m, b.size))
+        Z = np.empty((m, b.size)) if flexible else None
         H = np.zeros((m + 1, m))
         cs = np.zeros(m)
         sn = np.zeros(m)
@@ -81,8 +89,11 @@ def fgmres(A, b: np.ndarray, M, rtol: float, maxiter: int, restart: int = 60, x0
         k = 0
         breakdown = False
         for j in range(m):
-            Z[j] = M @ V[j]
-            w = A @ Z[j]
+            if flexible:
+                Z[j] = M @ V[j]
+                w = A @ Z[j]
+            else:
+                w = A @ (M @ V[j])
             h = V[: j + 1] @ w
             w -= V[: j + 1].T @ h
             h2 = V[: j + 1] @ w  # second pass: orthogonality to round-off
@@ -107,7 +118,7 @@ def fgmres(A, b: np.ndarray, M, rtol: float, maxiter: int, restart: int = 60, x0
             its += 1
             k = j + 1
             if abs(g[j + 1]) <= target and check is not None and hn != 0.0:
-                more = check(x + Z[:k].T @ _least_squares(H, g, k))
+                more = check(x + _update(Z, V, M, _least_squares(H, g, k)))
                 if more is None:
                     check = None  # accepted: stop here
                 else:
@@ -116,10 +127,16 @@ def fgmres(A, b: np.ndarray, M, rtol: float, maxiter: int, restart: int = 60, x0
                 break
             V[j + 1] = w / hn
         if k:
-            x += Z[:k].T @ _least_squares(H, g, k)
+            x += _update(Z, V, M, _least_squares(H, g, k))
         if breakdown:
             r = b - A @ x
             return x, its, "converged" if float(np.linalg.norm(r)) <= target else "breakdown"
+
+
+def _update(Z: np.ndarray | None, V: np.ndarray, M, y: np.ndarray) -> np.ndarray:
+    """The update Z y of the first ``len(y)`` directions: kept (flexible), or M (V y)."""
+    k = y.size
+    return Z[:k].T @ y if Z is not None else M @ (V[:k].T @ y)
 
 
 def _least_squares(H: np.ndarray, g: np.ndarray, k: int) -> np.ndarray:

@@ -416,7 +416,8 @@ class MixedBlockSolver(KrylovAMGSolver):
             target = rtol if not attempt else refinement_target(rtol, bn, rn, lag, floor)
             verdict["target"] = target
             if attempt:
-                z, its, status = fgmres(A, rhs, P, target, self.maxiter - total, restart=self.restart, check=check)
+                z, its, status = fgmres(A, rhs, P, target, self.maxiter - total, restart=self.restart,
+                                        check=check, flexible=False)
             else:
                 def fresh_verdict(lag=lag, target=target, verdict=verdict):
                     verdict.clear()  # the new preconditioner's iterations show their own lag
@@ -478,7 +479,8 @@ class MixedBlockSolver(KrylovAMGSolver):
         when that budget runs out (the kept preconditioner has cost more than a rebuild), rebuild
         it and start again. Returns (z, iterations, status, iterations of the stale preconditioner)."""
         A, P = self._mixed
-        z, its, status = fgmres(A, rhs, P, target, self._budget(rtol), restart=self.restart, check=check)
+        z, its, status = fgmres(A, rhs, P, target, self._budget(rtol), restart=self.restart, check=check,
+                                flexible=False)
         if status != "maxiter" or self._fresh or its >= self.maxiter:
             return z, its, status, 0
         _LOG.debug("FGMRES: %d iterations with a kept preconditioner cost more than a rebuild; rebuilding it", its)
@@ -486,7 +488,8 @@ class MixedBlockSolver(KrylovAMGSolver):
         self._refresh()
         if on_rebuild is not None:
             on_rebuild()
-        z, more, status = fgmres(A, rhs, P, target, self._retry_budget(rtol, its), restart=self.restart, check=check)
+        z, more, status = fgmres(A, rhs, P, target, self._retry_budget(rtol, its), restart=self.restart,
+                                 check=check, flexible=False)
         return z, its + more, status, its
 
     def _close(self, t0, setup0, status, total, stale, rtol):
