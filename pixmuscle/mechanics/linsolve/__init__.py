@@ -31,12 +31,11 @@ dataclass (:mod:`.base`); the package imports its modules when it loads, the con
     5,460-node leg with 1 × 1 × 3 patches 142 and 476 CG iterations at K/μ ≈ 95 and 951), so
     ``auto`` takes ``mixed_amg`` instead, which runs this CG for the nodal energy.
 ``mixed_amg``
-    The projected-energy tangent in mixed displacement–pressure form, flexible GMRES with a
+    The projected-energy tangent in mixed displacement–pressure form, GMRES with a
     block-triangular preconditioner (:mod:`.mixed`): an AMG V-cycle on the displacement block
     without patch terms, followed by exact solves on the node regions of the boundary conditions
     (end-face slabs, bone surfaces; :mod:`.subdomains`), and a diagonal Schur complement probed
-    from that preconditioner. Robust in K/μ with inf-sup stable patches (the default 2 × 2 × 3,
-    ``volumetric.held: patch``): the first Newton system of the 5,460-node leg to 10⁻⁶ in 34, 47
+    from that preconditioner. Robust in K/μ with inf-sup stable patches (the default 2 × 2 × 3): the first Newton system of the 5,460-node leg to 10⁻⁶ in 34, 47
     and 52 FGMRES iterations at K/μ ≈ 95, 951 and 9,506, of the 21,169-node leg in 59 at 951
     (docs/performance.md). Without a projected energy it runs CG as ``cg_amg``.
 ``petsc``

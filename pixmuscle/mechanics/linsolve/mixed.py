@@ -1,4 +1,4 @@
-r"""Iterative backend ``mixed_amg``: the Newton system in mixed displacement–pressure form, FGMRES
+r"""Iterative backend ``mixed_amg``: the Newton system in mixed displacement–pressure form, GMRES
 with a block-triangular preconditioner.
 
 Why. With the projected volumetric energy (:mod:`..volumetric`) the condensed tangent is
@@ -23,8 +23,9 @@ and a block-triangular preconditioner
 
 gives Krylov iterations independent of K/μ and of the model size (Klawonn 1998; Elman,
 Silvester & Wathen 2014, ch. 9), provided K_d holds no K-scaled term either. The patches of
-single held nodes (``volumetric.held: own``) keep their term in K_d, which then grows with K;
-with ``volumetric.held: patch`` (the default) every patch pressure is an unknown and K_d is K-free.
+single nodes held at the node (``volumetric.held: own``, the default) keep their term in K_d,
+which then grows with K; the region solves after the V-cycle take those rows exactly, so the
+iterations stay flat. With ``volumetric.held: patch`` every patch pressure is an unknown.
 
 The preconditioner. M_A⁻¹ is one AMG V-cycle on K_d (the hierarchy of ``cg_amg``, built from its
 positive definite stand-in on the ±2-voxel pattern, :meth:`.MechanicalSystem.preconditioner_matrix`)
@@ -41,6 +42,12 @@ penalty number, FGMRES reaches 10⁻⁶ on the first Newton system (α = 0.095),
 residual, in 33, 33 and 33 iterations at K/μ ≈ 95, 951 and 9,506 (5,460 nodes; 79, 116 and 131
 with ``schur: mass`` and the condensed stop, an earlier version) and in 53 at K/μ ≈ 951 on 73,753
 nodes (docs/performance.md, "The stand-in is positive definite").
+
+GMRES. The preconditioner — one V-cycle with fixed sweeps, exact region solves, a diagonal Ŝ — is
+one fixed linear operator, so GMRES preconditioned from the right needs no basis of preconditioned
+directions (flexible GMRES keeps one): the update is M (V y) (:func:`.fgmres.fgmres` with
+``flexible=False``), the same iterates for half the basis memory (1.5 GB on the longest solve of
+the 295k model); docs and records call its iterations FGMRES iterations.
 
 Scaling. The unknowns are Δd (cm) and q̃ = q / w (cm), and the second row is multiplied by w,
 w = mean_p(μ_p V_p) / s (N, s the smallest voxel edge): the system stays symmetric,
@@ -251,7 +258,7 @@ class MixedAMGOptions(CGAMGOptions):
     """Options of ``solve.solver: {backend: mixed_amg, …}``."""
 
     schur_scale: float = field(default=0.5, metadata={"gt": 0, "doc": "with schur: mass, c of the diagonal Schur complement diag(c/(μ_p V_p) + 1/(V_p K̄_p)): the typical eigenvalue of G K_d⁻¹ Gᵀ against the pressure mass"})
-    restart: int = field(default=200, metadata={"range": (1, None), "doc": "FGMRES basis size (vectors kept before a restart; memory 2 × restart × the unknowns)"})
+    restart: int = field(default=200, metadata={"range": (1, None), "doc": "GMRES basis size (vectors kept before a restart; memory restart × the unknowns)"})
     schur: str = field(default="probed", metadata={"choices": ("probed", "mass"), "doc": "diagonal Schur approximation: `probed`, the diagonal of G M Gᵀ (M the displacement block's preconditioner) by probing with probe_spacing³ colours of the patch grid at each preconditioner build; `mass`, c/(μ_p V_p) with c = schur_scale"})
     probe_spacing: int = field(default=3, metadata={"range": (2, None), "doc": "with schur: probed, same-colour patches of the probe are this many patch boxes apart (spacing³ colours, as many V-cycles at each preconditioner build)"})
     region_solves: bool = field(default=True, metadata={"doc": "after each V-cycle, solve the displacement block exactly on the node regions of the boundary conditions (the supports of their constraint points: end slabs, bone surfaces), where the stiff penalty couplings live (linsolve/subdomains.py)"})
