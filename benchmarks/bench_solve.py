@@ -407,8 +407,10 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
                          "setup_s": round(setup, 1), **(mixed or {}), "default": bool(default)})
             print(json.dumps(rows[-1]), flush=True)
             same = ("volumetric", "patch", "held", "backend", "bulk_scale")
-            for r in previous:  # an earlier row of a case measured again now is no longer the shipped default
-                if any(all(r.get(k) == n[k] for k in same) for n in rows):
+            for r in previous:  # an earlier row of a case measured again, or of a bulk scale with a new default row,
+                # is no longer the shipped default
+                if any(all(r.get(k) == n[k] for k in same) or (n["default"] and r.get("bulk_scale") == n["bulk_scale"])
+                       for n in rows):
                     r["default"] = False
             record = {"size": size, "nodes": model.n_nodes, "rtol": rtol, "penalty_beta": beta, "rows": previous + rows,
                       "load_avg": os.getloadavg()[0],
