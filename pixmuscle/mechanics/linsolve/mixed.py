@@ -46,8 +46,8 @@ on 73,753 nodes at K/μ ≈ 951 (docs/performance.md, "What is not met yet").
 GMRES. The preconditioner — one V-cycle with fixed sweeps, exact region solves, a diagonal Ŝ — is
 one fixed linear operator, so GMRES preconditioned from the right needs no basis of preconditioned
 directions (flexible GMRES keeps one): the update is M (V y) (:func:`.fgmres.fgmres` with
-``flexible=False``), the same iterates for half the basis memory (1.5 GB on the longest solve of
-the 295k model); docs and records call its iterations FGMRES iterations.
+``flexible=False``), the same iterates for half the basis memory (the two bases held 1.5 GB in the longest solve
+of the 295k model); docs and records call its iterations FGMRES iterations.
 
 Scaling. The unknowns are Δd (cm) and q̃ = q / w (cm), and the second row is multiplied by w,
 w = mean_p(μ_p V_p) / s (N, s the smallest voxel edge): the system stays symmetric,

@@ -48,7 +48,7 @@ def constraint_regions(system, held: np.ndarray | None = None, tol: float = REGI
     thousandths of the point's largest value. Their penalty couplings β Ψ_I Ψ_J are still about as
     stiff as the tissue, so the region needs all but the weakest. On the 74k leg, first Newton
     system (FGMRES to 10⁻⁶ on the mixed residual): every node, 7,172 in the bone region, 49
-    iterations; 10⁻³ (the default), 5,602 nodes, 49; 5·10⁻³ or 2·10⁻², 4,514 nodes, 53. On the
+    iterations; 10⁻³ (the default), 5,602 nodes, 49; 5·10⁻³, 53; 2·10⁻², 4,514 nodes, 53. On the
     295k model the bone region has 15,259, 11,061 and 9,002 nodes.
 
     Parameters
