@@ -93,6 +93,30 @@ def test_boomeramg_on_two_processes_converges_as_on_one():
     assert kb > 10_000
 
 
+@needs_workers
+def test_a_dropped_hierarchy_is_freed_on_every_process_before_the_next_stand_in_is_made():
+    """A hierarchy let go (a rebuild drops the old V-cycle) is only queued for freeing, since a
+    finaliser may not talk MPI; the next set-up frees it on every process before it makes its
+    stand-in, so that a rebuild's peak does not hold both."""
+    K, _ = _vector_laplacian(6)
+    Kb = K.tobsr(blocksize=(3, 3))
+    M = multigrid.v_cycle("hypre", Kb, None, None, 0.1, processes=2)
+    workers = M._workers
+    del M
+    queued_then = []
+
+    def stand_in():
+        queued_then.append(len(workers._unfreed))
+        return Kb
+
+    assert len(workers._unfreed) == 1
+    M = multigrid.v_cycle("hypre", stand_in, None, None, 0.1, processes=2)
+    assert queued_then == [0]
+    b = np.random.default_rng(2).standard_normal(K.shape[0])
+    _, its, status = pcg(K, b, M, 1e-10, 100)
+    assert status == "converged"
+
+
 def test_more_processes_need_hypre_and_as_many_cores():
     from pixmuscle.errors import InputError
 

@@ -459,8 +459,10 @@ def test_cg_amg_solves_an_indefinite_tangent_by_fgmres(amg):
 
 @pytest.mark.skipif(not pardiso.available(), reason="MKL PARDISO not installed")
 def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
-    """PARDISO's solution equals SciPy's sparse LU solve; its inertia equals numpy's eigenvalue count."""
-    from pixmuscle.mechanics.pardiso import PardisoLDLT, SymmetricPattern
+    """PARDISO's solution equals SciPy's sparse LU solve; its inertia equals numpy's eigenvalue count;
+    after its factors are released it refuses to solve, and a new factorisation on the kept
+    analysis gives the same solution."""
+    from pixmuscle.mechanics.pardiso import PardisoError, PardisoLDLT, SymmetricPattern
     from pixmuscle.verify.mechanics import linear_stiffness
 
     model = mask_model(np.ones((4, 3, 3), bool), (0.1, 0.1, 0.2))
@@ -480,6 +482,11 @@ def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
         assert np.allclose(x, x_ref, rtol=1e-8, atol=1e-10 * np.abs(x_ref).max())
         neg = int(np.sum(ev + shift < 0))
         assert f.info["inertia"] == (n - neg, neg)
+        f.release_factors()
+        with pytest.raises(PardisoError, match="before a successful factorisation"):
+            f.solve(r)
+        f.factorize(pat.values(Ks))
+        assert np.allclose(f.solve(r), x, rtol=1e-12, atol=1e-14 * np.abs(x).max())
         f.free()
 
 

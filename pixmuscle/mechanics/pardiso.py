@@ -207,6 +207,15 @@ class PardisoLDLT:
     def __matmul__(self, b):
         return self.solve(b)
 
+    def release_factors(self) -> None:
+        """Release the numerical factors and the values (PARDISO phase 0); the analysis stays, and
+        :meth:`factorize` works as before."""
+        if self._factored:
+            dummy = np.zeros(1)
+            self._call(0, dummy, dummy, dummy)
+            self._factored = False
+        self._data = np.zeros(0)
+
     def free(self) -> None:
         """Release PARDISO's internal memory (factors and analysis)."""
         if self.pt.any():

@@ -8,6 +8,8 @@ engine has
 ``solve(r)``       x = K⁻¹ r with the factors, r and x (3N,)
 ``escalate()``     after an inaccurate solve: switch to a more robust pivoting for the next
                    factorisation and return True, or return False when there is none
+``release()``      drop the numerical factors until the next ``factorize`` (an analysis of
+                   the pattern is kept)
 ``definite``       True when the last K was positive definite (known from the factors' inertia)
 ``info``           what the engine measured (``factor_nnz``, ``analysis_s``, …)
 """
@@ -127,6 +129,9 @@ class SuperLUFactor:
                 return self.factorize(K)
             raise SolverError(f"direct solver: stiffness matrix is singular ({exc}); check the boundary conditions") from None
 
+    def release(self) -> None:
+        self._lu = None
+
     def solve(self, r: np.ndarray) -> np.ndarray:
         if self._p is None:
             return self._lu.solve(r)
@@ -187,6 +192,10 @@ class PardisoFactor:
 
     def solve(self, r: np.ndarray) -> np.ndarray:
         return self._ldlt.solve(r)
+
+    def release(self) -> None:
+        if self._ldlt is not None:
+            self._ldlt.release_factors()
 
     def escalate(self) -> bool:
         return False

@@ -116,9 +116,12 @@ class RegionSolves:
             part.factor.factorize(part.asm.block(state, pressure_free=True))
 
     def release(self) -> None:
-        """Drop the moduli kept for the rows until the next :meth:`update`."""
+        """Drop the moduli kept for the rows and the numerical factors until the next :meth:`update`
+        (before a rebuild of the V-cycle, whose set-up then does not hold them: 60 M factor
+        entries on the 74k leg)."""
         for part in self.parts:
             part.C = None
+            part.factor.release()
 
     @property
     def n_nodes(self) -> int:
