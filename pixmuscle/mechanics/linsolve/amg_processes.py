@@ -257,7 +257,7 @@ class SpreadBoomerAMG:
         PETSc = import_petsc()
 
         # a hierarchy dropped just before (a rebuild) is only queued: free it before the stand-in is
-        # made, or the rebuild's peak holds both (+0.6 GB on the 74k leg)
+        # made, or the rebuild's peak holds both
         workers.flush()
         if callable(K):
             K = K()
