@@ -245,19 +245,21 @@ def local_rows(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, own: np.n
         near &= strong_entries(rows, np.abs(v).max(axis=1), n_rows, tol)
     near |= cols == at
     kept, cut = np.flatnonzero(near), np.flatnonzero(~near)
-    z = [np.ones(len(offset)), *offset.T]  # z_e = (1, x_e − x_r)
+    rk, rc = rows[kept], rows[cut]
+    zk = np.column_stack([np.ones(kept.size), offset[kept]])  # z_e = (1, x_e − x_r)
+    zc = np.column_stack([np.ones(cut.size), offset[cut]])
+    del offset
     gram = np.empty((n_rows, 4, 4))
     for a in range(4):
         for b in range(a, 4):
-            gram[:, a, b] = gram[:, b, a] = np.bincount(rows[kept], z[a][kept] * z[b][kept], minlength=n_rows)
+            gram[:, a, b] = gram[:, b, a] = np.bincount(rk, zk[:, a] * zk[:, b], minlength=n_rows)
     moments = np.empty((n_rows, 4, v.shape[1]))
     for a in range(4):
         for j in range(v.shape[1]):
-            moments[:, a, j] = np.bincount(rows[cut], z[a][cut] * v[cut, j], minlength=n_rows)
+            moments[:, a, j] = np.bincount(rc, zc[:, a] * v[cut, j], minlength=n_rows)
     lam = np.linalg.pinv(gram, rcond=1e-10, hermitian=True) @ moments  # (n_rows, 4, k)
     out = v * near[:, None]
-    lam = lam[rows[kept]]
-    out[kept] += lam[:, 0] + np.einsum("ea,eaj->ej", offset[kept], lam[:, 1:])
+    out[kept] += np.einsum("ea,eaj->ej", zk, lam[rk])
     return out.reshape(np.shape(values))
 
 
