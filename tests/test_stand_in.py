@@ -6,7 +6,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
-from pixmuscle.mechanics.assembly import local_operator, local_rows
+from pixmuscle.mechanics.assembly import local_operator, local_rows, local_rows_csr
 from pixmuscle.mechanics.solve import build_system
 from pixmuscle.verify.mechanics import _cfg, mask_model
 
@@ -46,6 +46,22 @@ def test_local_rows_keep_row_sums_and_first_moments_on_near_nodes_only():
     Mc = local_operator(M, own, ijk, 1)
     np.testing.assert_allclose(Mc @ ijk[:, 2].astype(float), M @ ijk[:, 2].astype(float), atol=1e-11)
     np.testing.assert_allclose(np.asarray(Mc.sum(axis=1)).ravel(), np.asarray(M.sum(axis=1)).ravel(), atol=1e-12)
+
+
+
+def test_rows_cut_a_few_at_a_time_are_cut_as_all_at_once():
+    rng = np.random.default_rng(1)
+    ijk = np.argwhere(np.ones((6, 6, 5), bool))
+    n = len(ijk)
+    counts = rng.integers(5, 40, n)
+    ptr = np.r_[0, np.cumsum(counts)]
+    cols = np.concatenate([np.r_[r, rng.choice(np.delete(np.arange(n), r), c - 1, replace=False)]
+                           for r, c in enumerate(counts)])
+    vals = rng.standard_normal((cols.size, 3))
+    rows = np.repeat(np.arange(n), counts)
+    whole = local_rows(rows, cols, vals, np.arange(n), ijk, 1, tol=0.1)
+    for chunk in (1, 50, 1000, 10**9):
+        np.testing.assert_array_equal(local_rows_csr(ptr, cols, vals, ijk, 1, tol=0.1, chunk=chunk), whole)
 
 
 def test_filtered_stand_in_is_positive_definite_where_dropping_far_pairs_is_not():

@@ -32,7 +32,7 @@ from ..errors import InputError, SolverError
 from ..model.model import Model
 from ..model.tissues import MUSCLE, NODE_TISSUES, TISSUE_NAMES
 from . import newton as _newton
-from .assembly import Assembler, local_operator, local_rows, nonzero_blocks, support_pattern, support_values
+from .assembly import Assembler, local_operator, local_rows_csr, nonzero_blocks, support_pattern, support_values
 from .boundary import SIGN_CONVENTION, Constraints, build_constraints, end_rule, penalty_number, vertex_rule_faces
 from .config import SolveConfig, SupportConfig
 from .ellipticity import acoustic_minimum, directions
@@ -48,8 +48,9 @@ _LOG = logging.getLogger(__name__)
 # the preconditioner's filtered stand-in (assembly.local_rows): each factor keeps its entries at the
 # nodes within LOCAL_RADIUS voxels of its cell or point (the stand-in then couples nodes at most 2
 # voxels apart) that are at least LOCAL_TOL times its row's largest: ~125 instead of ~335 non-zeros
-# per row, and on the 0.078-cm leg 48 and 55 FGMRES iterations at 21k and 74k nodes against 36
-# and 44 with every entry near (docs/performance.md, "The stand-in is positive definite")
+# per row (the 335-per-row stand-in ran the 295k sweep out of memory); on the 0.078-cm leg at 21k
+# nodes 39 FGMRES iterations on the first Newton system, 33 at 0.10 with 316 non-zeros per row,
+# 43 at 0.25 with 129 (docs/performance.md, "The stand-in keeps first moments")
 LOCAL_RADIUS = 1
 LOCAL_TOL = 0.15
 
@@ -228,8 +229,8 @@ class MechanicalSystem:
         S = sp.csr_matrix(self.support)
         S.sort_indices()
         rows = np.repeat(np.arange(S.shape[0], dtype=np.int64), np.diff(S.indptr))
-        cut = local_rows(rows, S.indices, self._support_gradients(), np.arange(S.shape[0]), self.model.ijk,
-                         LOCAL_RADIUS, wide, LOCAL_TOL)
+        cut = local_rows_csr(S.indptr, S.indices, self._support_gradients(), self.model.ijk, LOCAL_RADIUS, wide,
+                             LOCAL_TOL)
         kept = np.any(cut != 0.0, axis=1)
         Sc = sp.csr_matrix((np.ones(kept.sum(), np.float32), (rows[kept], S.indices[kept])), shape=S.shape)
         P = (Sc.T @ Sc).tocsr() + sp.identity(self.n_nodes, np.float32, format="csr")
