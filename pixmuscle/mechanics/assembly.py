@@ -269,9 +269,10 @@ LOCAL_CHUNK = 500_000
 
 
 def local_rows_csr(ptr: np.ndarray, cols: np.ndarray, values: np.ndarray, ijk: np.ndarray, radius: int,
-                   fixed: np.ndarray | None = None, tol: float = 0.0, chunk: int = LOCAL_CHUNK) -> np.ndarray:
-    """:func:`local_rows` of an operator stored row by row with row r's own node r (a cell's
-    gradients: the cells are the nodes), whole rows of about ``chunk`` entries at a time.
+                   fixed: np.ndarray | None = None, tol: float = 0.0, chunk: int = LOCAL_CHUNK,
+                   own: np.ndarray | None = None) -> np.ndarray:
+    """:func:`local_rows` of an operator stored row by row, whole rows of about ``chunk`` entries at
+    a time.
 
     Parameters
     ----------
@@ -281,6 +282,9 @@ def local_rows_csr(ptr: np.ndarray, cols: np.ndarray, values: np.ndarray, ijk: n
         As :func:`local_rows` (``values`` (m,) or (m, k)).
     chunk : int
         Entries cut at a time (a row longer than that is cut alone).
+    own : (n_rows,) int, optional
+        Each row's own node; row r's is node r when not given (a cell's gradients: the cells are
+        the nodes).
 
     Returns
     -------
@@ -293,7 +297,8 @@ def local_rows_csr(ptr: np.ndarray, cols: np.ndarray, values: np.ndarray, ijk: n
         stop = min(n_rows, max(start + 1, int(np.searchsorted(ptr, ptr[start] + chunk, side="right")) - 1))
         lo, hi = ptr[start], ptr[stop]
         rows = np.repeat(np.arange(stop - start, dtype=np.int64), np.diff(ptr[start:stop + 1]))
-        out[lo:hi] = local_rows(rows, cols[lo:hi], values[lo:hi], np.arange(start, stop), ijk, radius, fixed, tol)
+        at = np.arange(start, stop) if own is None else own[start:stop]
+        out[lo:hi] = local_rows(rows, cols[lo:hi], values[lo:hi], at, ijk, radius, fixed, tol)
         start = stop
     return out
 
@@ -307,9 +312,12 @@ def local_operator(M: sp.spmatrix, own: np.ndarray, ijk: np.ndarray, radius: int
     m = M.shape[0]
     C = sp.coo_matrix((np.r_[C.data, np.zeros(m)], (np.r_[C.row, np.arange(m)], np.r_[C.col, own])), shape=M.shape)
     C.sum_duplicates()  # keeps the explicit zeros
-    data = local_rows(C.row, C.col, C.data, own, ijk, radius, fixed, tol)
+    order = np.argsort(C.row, kind="stable")
+    rows, cols = C.row[order], C.col[order]
+    ptr = np.r_[0, np.cumsum(np.bincount(rows, minlength=m))]
+    data = local_rows_csr(ptr, cols, C.data[order], ijk, radius, fixed, tol, own=own)
     keep = data != 0.0
-    return sp.csr_matrix((data[keep], (C.row[keep], C.col[keep])), shape=M.shape)
+    return sp.csr_matrix((data[keep], (rows[keep], cols[keep])), shape=M.shape)
 
 
 def support_values(ptr: np.ndarray, nodes: np.ndarray, n_nodes: int, mats) -> np.ndarray:
