@@ -188,9 +188,9 @@ def local_rows(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, own: np.n
     What is cut is spread over the kept entries of its row so that the row keeps its sum and its
     first moments Σ_e b_e (x_e − x_r) (x_e the voxel index of entry e's node, x_r the own node's):
     the cut row acts on every linear field as the whole row does. A smoothed gradient row then
-    stays exact on linear displacements, so the stand-in has the tangent's energy for every
-    homogeneous deformation (and none for a translation or an infinitesimal rotation), and a
-    shape-function row still reproduces linear fields. The spread is the smallest (least-squares)
+    stays exact on linear displacements and a shape-function row still reproduces linear fields,
+    so the stand-in gives every linear displacement field (a translation, a rotation, a
+    homogeneous strain) the energy that the full-pattern product with the same C_r gives it. The spread is the smallest (least-squares)
     change of the kept entries that does it: for row r with kept entries K_r, z_e = (1, x_e − x_r),
 
         b̂_e = b_e + z_eᵀ λ_r (e ∈ K_r),   (Σ_{e∈K_r} z_e z_eᵀ) λ_r = Σ_{e∉K_r} z_e b_eᵀ,

@@ -36,8 +36,8 @@ dataclass (:mod:`.base`); the package imports its modules when it loads, the con
     without patch terms, followed by exact solves on the node regions of the boundary conditions
     (end-face slabs, bone surfaces; :mod:`.subdomains`), and a diagonal Schur complement probed
     from that preconditioner. Robust in K/μ with inf-sup stable patches (the default 2 × 2 × 3):
-    the first Newton system of the 5,460-node leg to 10⁻⁶ in 32, 33 and 33 iterations at K/μ ≈ 95,
-    951 and 9,506, of the 21,169- and 73,753-node legs in 37 and 49 at 951 (docs/performance.md).
+    the first Newton system of the 5,460-node leg to 10⁻⁶ in 32, 32 and 33 iterations at K/μ ≈ 95,
+    951 and 9,506, of the 21,169- and 73,753-node legs in 38 and 43 at 951 (docs/performance.md).
     Without a projected energy it runs CG as ``cg_amg``.
 ``petsc``
     PETSc (optional petsc4py) on one or several MPI ranks (``mpiexec -n P pixmuscle solve …``):
