@@ -14,7 +14,7 @@ the same 21,169-node stand-in in 1.1 s against ~15 s and cycles in 0.19 s agains
 region solves), for 50 FGMRES iterations against 47 on the first Newton system of the leg
 (docs/performance.md, "Multigrid: BoomerAMG and pyamg").
 
-BoomerAMG settings (hypre's names): HMIS coarsening with strength threshold 0.5, each
+BoomerAMG settings (hypre's names): HMIS coarsening with strength threshold 0.25, each
 displacement component on its own (the "unknown" approach, ``nodal_coarsen`` 0 with three
 functions per node: only couplings between like components count, and each component gets its
 own coarse grids). Coarsening the three components of a node together (``nodal_coarsen`` 6, the
@@ -24,8 +24,14 @@ smooth in-plane that vary along the slices (likely because the components' coupl
 slices differ: the fibres stiffen the axial one), to the Krylov method: on the first Newton system
 of the leg at 0.078 cm pixels, 43 FGMRES iterations against 54 at 21k nodes and 69 against 80 at
 74k, at the same set-up and cycle time (docs/performance.md, "Multigrid: BoomerAMG and pyamg");
-strength thresholds 0.25 and 0.7, P_max 6, the node ordering and the Frobenius-norm block
-strength (``nodal_coarsen`` 1, 117) gave nothing better. Extended+i interpolation with
+with nodal coarsening, strength thresholds 0.25 and 0.7, P_max 6, the node ordering and the
+Frobenius-norm block strength (``nodal_coarsen`` 1, 117) gave nothing better. Per component, the
+threshold 0.25 (hypre's default) holds the cycle's quality better than 0.5 as the model grows:
+GMRES on the displacement block alone (V-cycle and region solves, the first Newton system's
+force residual, 10⁻⁶) takes 31 iterations on the 74k leg with 0.25 against 35 with 0.5, and
+FGMRES on the mixed system 41 against 43 there and 46 against 49 on the 295k model (5k: 32
+either way), with a cheaper cycle (0.20 against 0.24 s at 74k on one process); 0.1 and 0.35
+gave 42 and 41 at 74k (docs/performance.md, "The strength threshold"). Extended+i interpolation with
 at most 4 entries per row; one forward hybrid Gauss–Seidel/Jacobi sweep before the coarse-grid
 correction and one backward sweep after it, Gaussian elimination on the coarsest level, so the
 cycle is a fixed symmetric operator (CG in ``cg_amg`` needs that). Operator complexity is ~1.1,
@@ -91,7 +97,7 @@ AUTO_PROCESSES = 2
 
 _PREFIX = "pixmuscleamg_"
 #: PETSc options of the BoomerAMG cycle (names without the dash); ``petsc_mixed`` uses them too
-BOOMERAMG_OPTIONS = {"pc_hypre_boomeramg_nodal_coarsen": 0, "pc_hypre_boomeramg_strong_threshold": 0.5,
+BOOMERAMG_OPTIONS = {"pc_hypre_boomeramg_nodal_coarsen": 0, "pc_hypre_boomeramg_strong_threshold": 0.25,
               "pc_hypre_boomeramg_coarsen_type": "HMIS", "pc_hypre_boomeramg_interp_type": "ext+i",
               "pc_hypre_boomeramg_P_max": 4, "pc_hypre_boomeramg_relax_type_down": "SOR/Jacobi",
               "pc_hypre_boomeramg_relax_type_up": "backward-SOR/Jacobi",
