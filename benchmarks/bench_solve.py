@@ -201,6 +201,7 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
         "preconditioner_builds": info.get("preconditioner_builds"),
         "amg": info.get("amg"),
         "amg_processes": info.get("amg_processes"),
+        "boomeramg": boomeramg_settings() if info.get("amg") == "hypre" else None,
         "factorizations": info.get("factorizations"),
         "direct_engine": info.get("linear_engine"),
         "factor_nnz_per_row": round(info["factor_nnz"] / (3 * model.n_nodes), 1) if info.get("factor_nnz") else None,
@@ -335,6 +336,13 @@ def parse_variant(spec: str) -> tuple[str, tuple[int, int, int] | None, str, str
     raise ValueError(f"variant {spec!r}: expected nodal:BACKEND or projected:PX,PY,PZ:BACKEND[:own|patch]")
 
 
+def boomeramg_settings() -> dict:
+    """The BoomerAMG options of this code (``pc_hypre_boomeramg_`` left out), for a record's provenance."""
+    from pixmuscle.mechanics.linsolve.multigrid import BOOMERAMG_OPTIONS
+
+    return {k.removeprefix("pc_hypre_boomeramg_"): v for k, v in BOOMERAMG_OPTIONS.items()}
+
+
 def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol: float = 1e-6,
                  variants=CONDITIONING_VARIANTS, on_row=None, previous=()) -> dict:
     """Krylov iterations of one Newton system (first load step, α = 0.095) against near-incompressibility.
@@ -403,6 +411,7 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
                          "schur": getattr(solver, "schur", None), "restart": getattr(solver, "restart", None),
                          "probe_spacing": getattr(solver, "probe_spacing", None),
                          "amg_processes": getattr(solver, "amg_processes", None),
+                         "boomeramg": boomeramg_settings() if getattr(solver, "amg", None) == "hypre" else None,
                          "krylov_iterations": its, "status": status, "solve_s": round(time.perf_counter() - t, 1),
                          "setup_s": round(setup, 1), **(mixed or {}), "default": bool(default)})
             print(json.dumps(rows[-1]), flush=True)
