@@ -49,9 +49,9 @@ bench-scale: $(STAMP)
 	for s in 1.5k 5k; do for p in "1,1,3 --held pressure" "2,2,3 --held pressure" "2,2,3 --held displacement" "2,2,3 --held patch"; do 	  $(BIN)/python benchmarks/bench_solve.py --infsup $$s --patch $$p || exit 1; done; done
 	$(BIN)/python benchmarks/bench_solve.py --infsup 10k --patch 2,2,3 --held displacement --thresholds 0.01 0.05
 	$(BIN)/python benchmarks/bench_solve.py --infsup 20k --patch 2,2,3 --held patch
-	$(BIN)/python benchmarks/bench_solve.py --conditioning 5k --append --variants projected:2,2,3:mixed_amg:patch
-	$(BIN)/python benchmarks/bench_solve.py --conditioning 20k --append --variants projected:2,2,3:mixed_amg:patch
-	$(BIN)/python benchmarks/bench_solve.py --conditioning 75k --append --variants projected:2,2,3:mixed_amg:patch --scales 1
+	$(BIN)/python benchmarks/bench_solve.py --conditioning 5k --append --variants projected:2,2,3:mixed_amg:own
+	$(BIN)/python benchmarks/bench_solve.py --conditioning 20k --append --variants projected:2,2,3:mixed_amg:own
+	$(BIN)/python benchmarks/bench_solve.py --conditioning 75k --append --variants projected:2,2,3:mixed_amg:own --scales 1
 	$(BIN)/python benchmarks/bench_solve.py --inertia 5k
 	$(BIN)/python benchmarks/bench_solve.py --inertia 20k
 	$(BIN)/python benchmarks/bench_tolerance.py --size 5k --tols 1e-6 1e-4 1e-4:1e-5 1e-4:1e-4 1e-3 1e-2
@@ -59,8 +59,8 @@ bench-scale: $(STAMP)
 	$(BIN)/python benchmarks/bench_petsc_mixed.py
 	$(BIN)/python benchmarks/bench_patch.py
 	for s in 5k 20k 75k; do for a in pyamg hypre; do $(BIN)/python benchmarks/bench_solve.py --multigrid $$s --amg $$a || exit 1; done; done
-	$(BIN)/python benchmarks/bench_solve.py --append --cases 5k:auto 20k:auto 75k:auto
-	for s in 20k-fine 75k-fine; do $(BIN)/python benchmarks/bench_solve.py --conditioning $$s --append --variants projected:2,2,3:mixed_amg:patch --scales 1 || exit 1; done
+	$(BIN)/python benchmarks/bench_solve.py --append --cases 5k:auto 5k:mixed_amg 20k:auto 75k:auto
+	for s in 20k-fine 75k-fine 295k; do $(BIN)/python benchmarks/bench_solve.py --conditioning $$s --append --variants projected:2,2,3:mixed_amg:own --scales 1 || exit 1; done
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 295k:auto --checkpoint .bench-checkpoints
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 295k:auto_1p --checkpoint .bench-checkpoints
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 75k:auto_1p 20k:auto_2p

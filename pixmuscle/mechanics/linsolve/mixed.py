@@ -39,9 +39,10 @@ default; :func:`probed_schur_diagonal`, ``probe_spacing`` = 3), once per build o
 the state it is built from (27 applications of M_A⁻¹), and kept with it; ``schur: mass`` takes
 the scaled pressure mass c/(μ_p V_p) instead (c = ``schur_scale``). On the leg with the default
 penalty number, FGMRES reaches 10⁻⁶ on the first Newton system (α = 0.095), stopped on the mixed
-residual, in 32, 32 and 33 iterations at K/μ ≈ 95, 951 and 9,506 (5,460 nodes; 79, 116 and 131
-with ``schur: mass`` and the condensed stop, an earlier version), in 38 on 21,169 nodes and in 43
-on 73,753 nodes at K/μ ≈ 951 (docs/performance.md, "What is not met yet").
+residual, in 31, 32 and 32 iterations at K/μ ≈ 95, 951 and 9,506 (5,460 nodes; 79, 116 and 131
+with ``schur: mass`` and the condensed stop, an earlier version), in 34 on 21,169 nodes, 41 on
+73,753 and 46 on the 295,073 of the 0.078-cm pixels at K/μ ≈ 951 (docs/performance.md, "Where
+the solver targets stand").
 
 GMRES. The preconditioner — one V-cycle with fixed sweeps, exact region solves, a diagonal Ŝ — is
 one fixed linear operator, so GMRES preconditioned from the right needs no basis of preconditioned
