@@ -43,13 +43,14 @@ per cycle with the region solves, 15 % less solve time and 24 % less set-up at 2
 (docs/performance.md, "Multigrid: BoomerAMG and pyamg"; these two comparisons with nodal
 coarsening). Rigid-body interpolation (hypre's vector interpolation with the nodes' rotations,
 on nodal coarsening) gave more iterations on the leg's fine pixels, 56 and 85 at 21k and 74k
-nodes against 43 and 69, and a slower set-up and cycle, so it is off. On the leg's first Newton
-system the V-cycle already did what an exact inverse of its stand-in does (34 against 33 FGMRES
-iterations at 5k, 44 against 46 at 21k on 0.078-cm pixels), so no setting of the cycle moved the
-count (docs/performance.md, "Krylov iterations and the model size"): what was left is the
-stand-in's difference from the tangent. A stand-in whose cut rows keep their first moments
+nodes against 43 and 69, and a slower set-up and cycle, so it is off. With the earlier stand-in
+the V-cycle did on the mixed system what an exact inverse of its stand-in does (34 against 33
+FGMRES iterations at 5k, 44 against 46 at 21k on 0.078-cm pixels), so no setting of the cycle
+moved the count (docs/performance.md, "Krylov iterations and the model size"): what was left was
+the stand-in's difference from the tangent. A stand-in whose cut rows keep their first moments
 (:func:`..assembly.local_rows`) took the 46 to 39 (docs/performance.md, "The stand-in keeps first
-moments").
+moments"); on that stand-in the cycle is what falls behind as the model grows, and the threshold
+0.25 took the 39 to 35.
 
 hypre runs on one core per process. ``amg_processes`` > 1 (option of ``cg_amg``, ``mixed_amg``
 and ``auto``) sets up and cycles each hierarchy on this process and spawned MPI workers
