@@ -199,6 +199,7 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
         "cg_iterations_per_newton": round(float(np.mean(lin)), 1) if backend != "direct" else None,
         "cg_s_per_iteration": round(info["linear_solve_s"] / max(np.sum(lin), 1), 4) if backend == "cg_amg" else None,
         "preconditioner_builds": info.get("preconditioner_builds"),
+        "preconditioner_build_s": info.get("preconditioner_build_s"),
         "amg": info.get("amg"),
         "amg_processes": info.get("amg_processes"),
         "boomeramg": boomeramg_settings() if info.get("amg") == "hypre" else None,

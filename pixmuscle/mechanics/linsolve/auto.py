@@ -22,7 +22,7 @@ class AutoOptions(Iterative):
     """Options of ``solve.solver: {backend: auto, …}`` (the default): ``rtol`` and ``maxiter`` go to
     the backend chosen."""
 
-    rebuild_cost: int = field(default=100, metadata={"range": (1, None), "doc": "with mixed_amg (above direct_max_dofs): what a build of the AMG hierarchy costs, in Krylov iterations (see cg_amg)"})
+    rebuild_cost: int = field(default=40, metadata={"range": (1, None), "doc": "with mixed_amg (above direct_max_dofs): what a build of the AMG hierarchy costs, in Krylov iterations (see mixed_amg)"})
     give_up: float = field(default=4.0, metadata={"gt": 0, "doc": "with mixed_amg: how many times the last measured iterations per decade a fresh AMG hierarchy may take before the solve fails (see cg_amg)"})
     amg: str = field(default="auto", metadata={"choices": AMG_CHOICES, "doc": "with mixed_amg: the multigrid, hypre BoomerAMG or pyamg (see cg_amg); auto takes hypre where petsc4py with hypre is installed"})
     amg_processes: int | Literal["auto"] = field(default="auto", metadata={"range": (1, None), "doc": "with mixed_amg: processes BoomerAMG runs on, this one and amg_processes − 1 spawned MPI workers; auto: 2 from 50,000 nodes on where the run has 2 cores of its own, else 1 (see cg_amg)"})

@@ -98,17 +98,20 @@ class KrylovAMGSolver(LinearSolver):
     solve adds the iterations it needs beyond that rate's prediction to an account; once the
     account exceeds ``rebuild_cost`` the hierarchy is rebuilt from the next Newton iteration's
     tangent, and a solve that exceeds it on its own is stopped there, the hierarchy rebuilt from
-    its tangent and the solve started again. So the iterations lost to a stale preconditioner
-    never exceed what a rebuild costs. A hierarchy that has not yet converged a solve (right
+    its tangent and the solve continued from the iterate it had reached (the next solve measures
+    the new hierarchy's rate). So the iterations lost to a stale preconditioner never exceed
+    what a rebuild costs. A hierarchy that has not yet converged a solve (right
     after a build) gets ``give_up`` × the last measured rate × decades + ``rebuild_cost``
     iterations, those spent before a mid-solve rebuild included; a system that needs more is far
     harder than the earlier ones (on the 74k leg: the state after an overshooting first update of
     an activation step, where a fresh hierarchy did not converge in 700 iterations), and the solve
     fails (:class:`~pixmuscle.errors.SolverGaveUp`), so that Newton cuts the load increment back
     instead of iterating for an hour; the next system gets a new hierarchy.
-    A build (filtered matrix, AMG set-up, and for ``mixed_amg`` the probed Schur diagonal) takes
-    the time of ~130 FGMRES iterations of ``mixed_amg`` at both 21k and 74k nodes (60 s against
-    0.47 s per iteration, 223 s against 1.7 s), hence the default of 100. The rule counts
+    What a build costs in iterations depends on the backend: for ``mixed_amg`` at 74k nodes
+    (hypre on 2 processes) a rebuild takes 16 s (filtered stand-in 2.3 s, BoomerAMG 4.4 s,
+    region factors 4.4 s, probed Schur diagonal 7.5 s) against 0.42 s per FGMRES iteration,
+    ~40 iterations, its default; a CG iteration here is cheaper and a pyamg set-up dearer
+    (62–137 s at 74k), hence 100 for ``cg_amg``. The rule counts
     iterations, not seconds, so that two runs of the same config take the same decisions and give
     the same numbers. The matrix-free operator is always the exact tangent, so a stale
     preconditioner costs iterations, never accuracy.
@@ -150,7 +153,7 @@ class KrylovAMGSolver(LinearSolver):
         self._system = None
         self._state = None
         self._built_at = None  # (d, t, α, carried pressure) of the state the hierarchy was built from
-        self.info.update(preconditioner_builds=0, krylov_iterations=0, levels=0, operator_complexity=0.0,
+        self.info.update(preconditioner_builds=0, build_s=[], krylov_iterations=0, levels=0, operator_complexity=0.0,
                          indefinite_solves=0, amg=self.amg)
 
     @classmethod
@@ -169,6 +172,7 @@ class KrylovAMGSolver(LinearSolver):
         self.info["operator_complexity"] = self._M.operator_complexity
         self.info["preconditioner_builds"] += 1
         self.info["setup_s"] += time.perf_counter() - t0
+        self.info["build_s"].append(time.perf_counter() - t0)
         self._rate0 = None
         self._excess = 0.0
         self._stale = False
@@ -218,7 +222,8 @@ class KrylovAMGSolver(LinearSolver):
         """Ski-rental bookkeeping after a converged solve of ``its`` iterations to ``rtol``."""
         decades = max(np.log10(1.0 / rtol), 1.0)
         if self._rate0 is None:
-            self._rate0 = self._rate_last = max(its / decades, 1.0)
+            if its > decades:  # a solve of one iteration per decade or less (a right-hand side in a few modes) shows no rate
+                self._rate0 = self._rate_last = its / decades
         elif its > 0:
             self._excess += max(its - self._rate0 * decades, 0.0)
             if self._excess > self.rebuild_cost:
@@ -238,12 +243,13 @@ class KrylovAMGSolver(LinearSolver):
         rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
         b = np.asarray(r, float)
         x, its, status = pcg(self._A, b, self._M, rtol, self._budget(rtol))
-        total, method = its, "CG"
+        total, method, rebuilt = its, "CG", False
         if status == "maxiter" and not self._fresh and total < self.maxiter:
             _LOG.debug("CG: %d iterations with a kept preconditioner cost more than a rebuild; rebuilding it", its)
             self._build()
-            x, its, status = pcg(self._A, b, self._M, rtol, self._retry_budget(rtol, total))
+            x, its, status = pcg(self._A, b, self._M, rtol, self._retry_budget(rtol, total), x0=x)
             total += its
+            rebuilt = True
         if status == "breakdown":  # negative curvature: the tangent is indefinite here
             _LOG.debug("CG met negative curvature after %d iterations; solving by FGMRES", its)
             self.info["indefinite_solves"] += 1
@@ -255,7 +261,8 @@ class KrylovAMGSolver(LinearSolver):
         self.info["solve_s"] = time.perf_counter() - t0 - (self.info["setup_s"] - setup0)
         if status != "converged":
             raise self._fail(method, status, total, rtol)
-        self._account(its, rtol)
+        if not rebuilt:  # a solve continued after a rebuild does not show the new hierarchy's rate: the next one does
+            self._account(its, rtol)
         return x
 
     @property
@@ -286,9 +293,11 @@ class KrylovAMGSolver(LinearSolver):
         self._rate_last = None if np.isnan(last) else float(last)
 
     def statistics(self) -> dict:
-        """Name, ``amg`` (the multigrid) and ``amg_processes``, ``preconditioner_builds``, ``krylov_iterations``
-        (all solves) and ``indefinite_solves`` (solves finished by FGMRES after negative curvature in CG)."""
+        """Name, ``amg`` (the multigrid) and ``amg_processes``, ``preconditioner_builds`` and
+        ``preconditioner_build_s`` (the wall time of each build, s), ``krylov_iterations`` (all solves)
+        and ``indefinite_solves`` (solves finished by FGMRES after negative curvature in CG)."""
         return super().statistics() | {"amg": self.amg, "amg_processes": self.amg_processes,
                                        "preconditioner_builds": self.info["preconditioner_builds"],
+                                       "preconditioner_build_s": [round(t, 2) for t in self.info["build_s"]],
                                        "krylov_iterations": self.info["krylov_iterations"],
                                        "indefinite_solves": self.info["indefinite_solves"]}
