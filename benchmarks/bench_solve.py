@@ -76,6 +76,7 @@ BACKENDS = {
     "auto": {"backend": "auto"},                                              # the shipped default
     "auto_1p": {"backend": "auto", "amg_processes": 1},                       # BoomerAMG on this process only
     "auto_2p": {"backend": "auto", "amg_processes": 2},                       # BoomerAMG on two processes
+    "auto_rebuild100": {"backend": "auto", "rebuild_cost": 100},             # the rebuild rule before mixed_amg's 40
     "mixed_amg_pyamg": {"backend": "mixed_amg", "amg": "pyamg"},
     "auto_pyamg": {"backend": "auto", "amg": "pyamg"},
 }
