@@ -108,9 +108,9 @@ class KrylovAMGSolver(LinearSolver):
     fails (:class:`~pixmuscle.errors.SolverGaveUp`), so that Newton cuts the load increment back
     instead of iterating for an hour; the next system gets a new hierarchy.
     What a build costs in iterations depends on the backend: for ``mixed_amg`` at 74k nodes
-    (hypre on 2 processes) a rebuild takes 16 s (filtered stand-in 2.3 s, BoomerAMG 4.4 s,
+    (hypre on 2 processes) a rebuild takes 18–19 s (filtered stand-in 2.3 s, BoomerAMG 4.4 s,
     region factors 4.4 s, probed Schur diagonal 7.5 s) against 0.42 s per FGMRES iteration,
-    ~40 iterations, its default; a CG iteration here is cheaper and a pyamg set-up dearer
+    ~44 iterations (its default: 40); a CG iteration here is cheaper and a pyamg set-up dearer
     (62–137 s at 74k), hence 100 for ``cg_amg``. The rule counts
     iterations, not seconds, so that two runs of the same config take the same decisions and give
     the same numbers. The matrix-free operator is always the exact tangent, so a stale

@@ -258,7 +258,7 @@ class _BlockTriangular:
 class MixedAMGOptions(CGAMGOptions):
     """Options of ``solve.solver: {backend: mixed_amg, …}``."""
 
-    rebuild_cost: int = field(default=40, metadata={"range": (1, None), "doc": "what a build of the AMG hierarchy with its region factors and Schur diagonal costs, in FGMRES iterations (~40 at 74k nodes: 16 s against 0.42 s per iteration): the hierarchy is rebuilt once the iterations beyond its rate right after the last build add up to this many (within a solve too; see cg_amg)"})
+    rebuild_cost: int = field(default=40, metadata={"range": (1, None), "doc": "what a build of the AMG hierarchy with its region factors and Schur diagonal costs, in FGMRES iterations (~40 at 74k nodes: 18 s against 0.42 s per iteration): the hierarchy is rebuilt once the iterations beyond its rate right after the last build add up to this many (within a solve too; see cg_amg)"})
     schur_scale: float = field(default=0.5, metadata={"gt": 0, "doc": "with schur: mass, c of the diagonal Schur complement diag(c/(μ_p V_p) + 1/(V_p K̄_p)): the typical eigenvalue of G K_d⁻¹ Gᵀ against the pressure mass"})
     restart: int = field(default=200, metadata={"range": (1, None), "doc": "GMRES basis size (vectors kept before a restart; memory restart × the unknowns)"})
     schur: str = field(default="probed", metadata={"choices": ("probed", "mass"), "doc": "diagonal Schur approximation: `probed`, the diagonal of G M Gᵀ (M the displacement block's preconditioner) by probing with probe_spacing³ colours of the patch grid at each preconditioner build; `mass`, c/(μ_p V_p) with c = schur_scale"})
