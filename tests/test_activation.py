@@ -1,4 +1,4 @@
-"""Per-muscle activation (issue 18): config, per-node ramp, activation image, and the solve.
+"""Per-muscle activation: config, per-node ramp, activation image, and the solve.
 
 Truth: a block of two side-by-side muscles with fibres along z between roller ends stays at F = I
 for any activation that varies only across the fibres (the active stress α σ_max a⊗a is then

@@ -1,4 +1,4 @@
-"""Failures, faults and hostile input (issue 17): each case gives one line naming the file or key,
+"""Failures, faults and hostile input: each case gives one line naming the file or key,
 the exit code, and leaves nothing that looks complete.
 
 One small phantom is segmented, modelled and solved once (module fixture, a few seconds); the
@@ -126,9 +126,9 @@ def in_tmpfs(mount: Path, options: str, *args) -> subprocess.CompletedProcess:
                           capture_output=True, text=True)
 
 
-# --------------------------------------------------------------------------- 1, 13: failed solves
+# --------------------------------------------------------------------------- failed solves
 def test_failed_solve_rewrites_the_report_as_failed(solved, tmp_path):
-    """Point 1 and 13: after a complete run, a failing solve leaves a report that says failed."""
+    """After a complete run, a failing solve leaves a report that says failed."""
     cfg_path, out = copy_run(solved, tmp_path)
     assert json.loads((out / "report/summary.json").read_text())["status"] == "complete"
     raw = yaml.safe_load(cfg_path.read_text())
@@ -164,7 +164,7 @@ def test_failed_solve_stage_prints_its_results_and_exits_3(solved, tmp_path):
 
 
 def test_max_iterations_one_is_a_config_error(solved, tmp_path):
-    """Point 13: a setting that can never converge is refused before any work."""
+    """A setting that can never converge is refused before any work."""
     cfg_path, out = copy_run(solved, tmp_path)
     raw = yaml.safe_load(cfg_path.read_text())
     raw["solve"]["newton"] = {"max_iterations": 1}
@@ -202,7 +202,7 @@ class _Diagonal:
 
 
 def test_cutbacks_stop_when_they_cannot_help():
-    """Point 13: two stagnating attempts in a row end the step instead of cutting back 6 times."""
+    """Two stagnating attempts in a row end the step instead of cutting back 6 times."""
     from pixmuscle.mechanics.config import NewtonConfig
     from pixmuscle.mechanics.newton import load_steps
 
@@ -216,9 +216,9 @@ def test_cutbacks_stop_when_they_cannot_help():
     assert np.allclose(np.tanh(records[-1].state.d), 0.9)
 
 
-# --------------------------------------------------------------------------- 2, 16, 17: the report as a unit, leftovers
+# --------------------------------------------------------------------------- the report as a unit, leftovers
 def test_report_failing_midway_leaves_the_old_report_untouched(solved, tmp_path):
-    """Point 2 and 17: the report folder is replaced as a unit; a failure half-way changes nothing."""
+    """The report folder is replaced as a unit; a failure half-way changes nothing."""
     _, out = copy_run(solved, tmp_path)
     before = {p.relative_to(out): p.read_bytes() for p in (out / "report").rglob("*") if p.is_file()}
     bad = write_config(tmp_path / "report.yaml", {"report": {"slices": True, "slice_step": 99}})
@@ -230,7 +230,7 @@ def test_report_failing_midway_leaves_the_old_report_untouched(solved, tmp_path)
 
 
 def test_leftover_partials_are_removed(solved, tmp_path):
-    """Point 16 and 17: temporaries of killed writes (stage file, report folder) are swept."""
+    """Temporaries of killed writes (stage file, report folder) are swept."""
     cfg_path, out = copy_run(solved, tmp_path)
     host, pid = socket.gethostname(), dead_pid()
     (out / f".results_coarse.h5.{host}.{pid}.x1y2.partial").write_bytes(b"half an HDF5 file")
@@ -248,7 +248,7 @@ def test_leftover_partials_are_removed(solved, tmp_path):
 
 
 def test_write_stage_removes_temporaries_of_dead_writers_only(tmp_path):
-    """Point 16 (single-stage commands): the next write of a file removes its dead writer's temporary."""
+    """Single-stage commands: the next write of a file removes its dead writer's temporary."""
     from pixmuscle.store import write_stage
 
     host = socket.gethostname()
@@ -268,9 +268,9 @@ def _umask() -> int:
     return m
 
 
-# --------------------------------------------------------------------------- 3, 4: unique subjects, one run per output folder
+# --------------------------------------------------------------------------- unique subjects, one run per output folder
 def test_duplicate_subject_names(phantom, tmp_path):
-    """Point 3 (the check is issue 13's, in pipeline.load_run): refused before anything is written."""
+    """Two subjects of one name are refused by pipeline.load_run before anything is written."""
     cfg = base_config(phantom, tmp_path / "cohort")
     cfg["subjects"] = [{"name": "young"}, {"name": "young", "solve": {"steps": 1}}]
     c = write_config(tmp_path / "c.yaml", cfg)
@@ -281,7 +281,7 @@ def test_duplicate_subject_names(phantom, tmp_path):
 
 
 def test_second_run_into_a_locked_folder_refuses(solved, tmp_path):
-    """Point 4: a run holding the folder makes another run refuse, naming the holder."""
+    """A run holding the folder makes another run refuse, naming the holder."""
     cfg_path, out = copy_run(solved, tmp_path)
     holder = subprocess.Popen(
         [sys.executable, "-c", "import sys; from pixmuscle.outdir import output_lock\n"
@@ -299,9 +299,9 @@ def test_second_run_into_a_locked_folder_refuses(solved, tmp_path):
     assert r.exit_code == 0, r.stderr
 
 
-# --------------------------------------------------------------------------- 5: DTI without signal
+# --------------------------------------------------------------------------- DTI without signal
 def test_dti_hole_in_a_muscle_is_reported(phantom, tmp_path):
-    """Point 5: zero tensors over part of the muscle: warning with voxel counts, in the log and the report."""
+    """Zero tensors over part of the muscle: warning with voxel counts, in the log and the report."""
     d, seed = phantom
     img = nib.load(d / "mg_dti_tensor.nii.gz")
     assert img.header.get_xyzt_units()[0] == "mm"
@@ -325,9 +325,9 @@ def test_dti_hole_in_a_muscle_is_reported(phantom, tmp_path):
     assert any("DTI has no signal" in w and f"medial_gastrocnemius {counts[0]}" in w for w in warnings)
 
 
-# --------------------------------------------------------------------------- 6, 20: boundary conditions
+# --------------------------------------------------------------------------- boundary conditions
 def test_point_bc_far_outside_the_body(solved, tmp_path):
-    """Point 6: a point farther than one cell from every node is an error naming the BC."""
+    """A point farther than one cell from every node is an error naming the BC."""
     out, cfg = solved
     c = write_config(tmp_path / "c.yaml", {"solve": {**cfg["solve"], "boundary_conditions": [
         {"nodes": "z_min", "fix": ["x", "y", "z"]}, {"point": [0.0, 0.0, 162.0], "fix": ["x"]}]}})
@@ -338,7 +338,7 @@ def test_point_bc_far_outside_the_body(solved, tmp_path):
 
 
 def test_missing_node_set_is_caught_before_any_stage(phantom, tmp_path):
-    """Point 20: a BC naming a set the model will not have stops the run before segmenting."""
+    """A BC naming a set the model will not have stops the run before segmenting."""
     cfg = base_config(phantom, tmp_path / "out")
     cfg["solve"]["boundary_conditions"][1]["nodes"] = "z_top"
     r = cli("run", write_config(tmp_path / "c.yaml", cfg))
@@ -347,13 +347,13 @@ def test_missing_node_set_is_caught_before_any_stage(phantom, tmp_path):
     assert not (tmp_path / "out/segmentation.h5").exists()
 
 
-# --------------------------------------------------------------------------- 7, 12, 15, 18: config files
+# --------------------------------------------------------------------------- config files
 @pytest.mark.parametrize("text, expected", [
     ("solve:\n  steps: 10\n  activation: {from: 0, to: 1}\n  steps: 2\n",
-     ":4:3: not valid YAML: key 'steps' is given twice (first on line 2)"),                            # point 7
-    ("solve:\n  steps: 10\n  activation: {from: 0, to: 1\n", ":4:1: not valid YAML:"),                # point 15
+     ":4:3: not valid YAML: key 'steps' is given twice (first on line 2)"),
+    ("solve:\n  steps: 10\n  activation: {from: 0, to: 1\n", ":4:1: not valid YAML:"),
     ("solve:\n  steps: 10\n   boundary_conditions: []\n", ":3:23: not valid YAML: mapping values are not allowed here"),
-    ("", ": the config file is empty"),                                                                  # point 18
+    ("", ": the config file is empty"),
     ("# nothing but a comment\n", ": the config file is empty"),
 ])
 def test_config_file_errors_name_file_line_column(tmp_path, monkeypatch, text, expected):
@@ -362,7 +362,7 @@ def test_config_file_errors_name_file_line_column(tmp_path, monkeypatch, text, e
     r = cli("run", c)
     assert r.exit_code == 2
     assert error_line(r.stderr).startswith(f"error: {c}{expected}")
-    assert not (tmp_path / "out").exists()                                  # nothing created (point 18)
+    assert not (tmp_path / "out").exists()                                  # nothing created
 
 
 @pytest.mark.parametrize("solve, key", [
@@ -373,7 +373,7 @@ def test_config_file_errors_name_file_line_column(tmp_path, monkeypatch, text, e
     ({"penalty": {"factor": float("-inf")}}, "solve.penalty.factor: expected a finite number, got -inf"),
 ])
 def test_nan_and_inf_in_config_name_the_key(phantom, tmp_path, solve, key):
-    """Point 12: NaN/inf are config errors naming the key (not a Newton failure later)."""
+    """NaN/inf are config errors naming the key (not a Newton failure later)."""
     cfg = base_config(phantom, tmp_path / "out")
     cfg["solve"].update(solve)
     with pytest.raises(InputError, match=None) as exc:
@@ -388,9 +388,9 @@ def test_nan_in_yaml_text_exit_2(phantom, tmp_path):
     assert not (tmp_path / "out").exists()
 
 
-# --------------------------------------------------------------------------- 8, 9, 10: output folder and disk
+# --------------------------------------------------------------------------- output folder and disk
 def test_output_dir_that_is_a_file(phantom, tmp_path):
-    """Point 10."""
+    """An output_dir that is a file is refused, naming the path."""
     (tmp_path / "out").write_text("not a folder")
     r = cli("run", write_config(tmp_path / "c.yaml", base_config(phantom, tmp_path / "out")))
     assert r.exit_code == 2 and f"output_dir {tmp_path / 'out'}: is a file, expected a folder" in error_line(r.stderr)
@@ -398,7 +398,7 @@ def test_output_dir_that_is_a_file(phantom, tmp_path):
 
 @needs_mount
 def test_read_only_output_folder_is_refused_before_work(phantom, tmp_path):
-    """Point 9: checked before segmentation (a read-only file system stops even root)."""
+    """Checked before segmentation (a read-only file system stops even root)."""
     cfg = write_config(tmp_path / "c.yaml", base_config(phantom, tmp_path / "ro" / "out"))
     r = in_tmpfs(tmp_path / "ro", "ro", "run", cfg)
     assert r.returncode == 2
@@ -408,7 +408,7 @@ def test_read_only_output_folder_is_refused_before_work(phantom, tmp_path):
 
 @needs_mount
 def test_read_only_output_of_a_stage_command_is_refused_before_work(solved, tmp_path):
-    """Point 9 for a single stage: `pixmuscle solve -o <read-only>/r.h5` stops before solving."""
+    """For a single stage: `pixmuscle solve -o <read-only>/r.h5` stops before solving."""
     out, cfg = solved
     c = write_config(tmp_path / "c.yaml", {"solve": cfg["solve"]})
     r = in_tmpfs(tmp_path / "ro", "ro", "solve", out / "model_coarse.h5", "-c", c, "-o", tmp_path / "ro" / "r.h5")
@@ -423,7 +423,7 @@ def test_read_only_output_of_a_stage_command_is_refused_before_work(solved, tmp_
     ("128k", "not enough free disk space: the file needs"),               # the file's exact size, after it
 ])
 def test_disk_full_stage_file(solved, tmp_path, size, expected):
-    """Point 8: a stage file that does not fit: one line with the path and the free space, nothing left."""
+    """A stage file that does not fit: one line with the path and the free space, nothing left."""
     out, cfg = solved
     c = write_config(tmp_path / "c.yaml", {"solve": cfg["solve"]})
     target = tmp_path / "small" / "results.h5"
@@ -439,7 +439,7 @@ def test_disk_full_stage_file(solved, tmp_path, size, expected):
 
 @needs_mount
 def test_disk_full_while_writing_vtu(solved, tmp_path):
-    """Point 8: the report (VTU series) runs out of space: one line, no partial VTU or report left."""
+    """The report (VTU series) runs out of space: one line, no partial VTU or report left."""
     out, _ = solved
     size = sum(p.stat().st_size for p in (out / "report").rglob("*") if p.is_file())
     target = tmp_path / "small"
@@ -452,7 +452,7 @@ def test_disk_full_while_writing_vtu(solved, tmp_path):
 
 @needs_mount
 def test_disk_full_during_the_segment_side_outputs(phantom, tmp_path):
-    """Point 8: the NIfTI/PNG side outputs of segment do not fit: one line, and no segmentation.h5
+    """The NIfTI/PNG side outputs of segment do not fit: one line, and no segmentation.h5
     (the stage file is written last, so the stage is not taken as done)."""
     cfg = write_config(tmp_path / "c.yaml", base_config(phantom, tmp_path / "unused"))
     target = tmp_path / "small"
@@ -464,7 +464,7 @@ def test_disk_full_during_the_segment_side_outputs(phantom, tmp_path):
     assert "segmentation.h5" not in left and not [n for n in left if n.startswith(".")]
 
 
-# --------------------------------------------------------------------------- 11: model file missing a dataset
+# --------------------------------------------------------------------------- model file missing a dataset
 def test_model_missing_a_dataset(solved, tmp_path):
     out, cfg = solved
     model = tmp_path / "model.h5"
@@ -476,7 +476,7 @@ def test_model_missing_a_dataset(solved, tmp_path):
     assert not (tmp_path / "r.h5").exists()
 
 
-# --------------------------------------------------------------------------- 14: two muscles, one seed
+# --------------------------------------------------------------------------- two muscles, one seed
 def test_two_muscles_with_the_same_seed(phantom, tmp_path):
     cfg = base_config(phantom, tmp_path / "out")
     seed = cfg["segment"]["seeds"]["medial_gastrocnemius"]
@@ -488,16 +488,16 @@ def test_two_muscles_with_the_same_seed(phantom, tmp_path):
     assert not (tmp_path / "out/segmentation.h5").exists()
 
 
-# --------------------------------------------------------------------------- 19, 21: log on stderr, decreasing activation
+# --------------------------------------------------------------------------- log on stderr, decreasing activation
 def test_decreasing_ramp_is_allowed_and_logged_on_stderr(solved, tmp_path):
-    """Point 21: a relaxation ramp (from > to) runs, and the log says so; point 19: on stderr."""
+    """A relaxation ramp (from > to) runs, and the log says so, on stderr."""
     out, cfg = solved
     solve = {**cfg["solve"], "activation": {"from": 0.5, "to": 0.1}}
     r = cli("solve", out / "model_coarse.h5", "-c", write_config(tmp_path / "c.yaml", {"solve": solve}),
             "-o", tmp_path / "r.h5")
     assert r.exit_code == 0, r.stderr
     assert "decreasing ramp" in r.stderr and "relaxation" in r.stderr
-    assert "relaxation" not in r.stdout and "load step" not in r.stdout       # point 19: the log is on stderr
+    assert "relaxation" not in r.stdout and "load step" not in r.stdout       # the log is on stderr
     with h5py.File(tmp_path / "r.h5") as f:
         assert f.attrs["status"] == "complete"
         np.testing.assert_allclose(f["steps/alpha"][()], [0.5, 0.3, 0.1])

@@ -1,4 +1,4 @@
-"""Scanner DWI (issue 18): FSL b-vector convention, dipy tensor fit against a known tensor field.
+"""Scanner DWI: FSL b-vector convention, dipy tensor fit against a known tensor field.
 
 Truth: signals generated from a known tensor field (:mod:`pixmuscle.synth.dwi`, the tensor model
 with Rician noise), written in several stored voxel orientations of an oblique affine with the
