@@ -25,9 +25,9 @@ from .outdir import prepare_output_dir
 RESULT_BYTES_PER_NODE_STEP = 13 * 8
 #: the rough cost of one load step, s: ``a n^p + b n²`` with n = n_nodes / :data:`NODES_REF` and
 #: ``STEP_SECONDS = (a, p, b)``, a least-squares fit in log to the whole sweeps at the defaults on 2 cores
-#: (benchmarks/results/bench_solve.json, ``"defaults": true``: 5,460 to 295,073 nodes, 39 s to 27 min
+#: (benchmarks/results/bench_solve.json, ``"defaults": true``: 5,460 to 295,073 nodes, 39 s to 30 min
 #: for 10 steps; each within 6 % of the fit). The n² term is the growth of the Krylov iterations
-STEP_SECONDS = (3.807, 0.837, 0.018)
+STEP_SECONDS = (3.792, 0.838, 0.025)
 NODES_REF = 5460
 
 
