@@ -9,6 +9,7 @@ DEMO_STAMP := $(VENV)/.pixmuscle-demo
 
 # `make demo` installs what the demo needs (pixmuscle and the interactive 3-D view: about a minute on a
 # fresh machine); `make test` adds everything the tests use: the test and dev tools, MKL PARDISO, dipy,
+# the scanner-data readers (pydicom, dcm2niix, pynrrd, SimpleITK),
 # the optional PETSc/MPI backend (.ci/install-petsc: Debian/Ubuntu as root, else it says why not) and
 # headless Chromium for the report's browser test (.ci/install-browser, same rule). Both redo their
 # install when pyproject.toml changes.
@@ -19,7 +20,7 @@ $(DEMO_STAMP): pyproject.toml
 	touch $(DEMO_STAMP)
 
 $(STAMP): $(DEMO_STAMP)
-	$(BIN)/python -m pip install --quiet -e ".[view,test,dev,fast,dwi]"
+	$(BIN)/python -m pip install --quiet -e ".[view,test,dev,fast,dwi,scanner]"
 	.ci/install-petsc $(BIN)/python
 	.ci/install-browser
 	touch $(STAMP)

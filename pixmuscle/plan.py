@@ -130,7 +130,7 @@ def is_up_to_date(stage: Stage) -> bool:
         if checkpoint_path(stage.output).exists():  # a solve was interrupted here: run it (it resumes)
             return False
     schema, version = stage.schema
-    return up_to_date(stage.output, schema, version, stage.config, [p for p in stage.inputs if p.is_file()])
+    return up_to_date(stage.output, schema, version, stage.config, [p for p in stage.inputs if p.exists()])
 
 
 def execute_stage(stage: Stage, force: bool = False) -> str:
@@ -292,7 +292,7 @@ def stage_mismatch(stage: Stage) -> Mismatch | None:
     digests: dict[Path, str] = {}
 
     def digest(p: Path) -> str | None:
-        if p not in digests and p.is_file():
+        if p not in digests and p.exists():
             digests[p] = sha256_file(p)
         return digests.get(p)
 

@@ -48,7 +48,14 @@ DEFAULT_UNITS = {"length": "cm", "force": "N", "stress": "N/cm^2", "volume": "cm
 
 
 def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
-    """SHA-256 hex digest of a file's bytes."""
+    """SHA-256 hex digest of a file's bytes; of a folder (a DICOM series), of its files' relative
+    names and digests, so that a file added, removed, renamed or changed gives another digest."""
+    if os.path.isdir(path):
+        root = Path(path)
+        h = hashlib.sha256()
+        for p in sorted(q for q in root.rglob("*") if q.is_file()):
+            h.update(f"{p.relative_to(root).as_posix()}\0{sha256_file(p, chunk)}\n".encode())
+        return h.hexdigest()
     h = hashlib.sha256()
     with open(path, "rb") as f:
         while True:

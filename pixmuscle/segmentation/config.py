@@ -32,17 +32,37 @@ __all__ = ["TwoPhaseConfig", "BoneConfig", "MultiphaseConfig", "DWIConfig", "Seg
 
 @dataclass(frozen=True)
 class DWIConfig:
-    """A diffusion-weighted series as from the scanner; the tensor is fitted with dipy
-    (:mod:`pixmuscle.imaging.dwi`, optional extra ``pixmuscle[dwi]``)."""
+    """A diffusion-weighted series as from the scanner: a 4-D NIfTI with FSL b-values / b-vectors, or
+    a folder of DICOM files (gradients from the DICOM tags, :mod:`pixmuscle.io.dicom`); the tensor is
+    fitted with dipy (:mod:`pixmuscle.imaging.dwi`, optional extra ``pixmuscle[dwi]``)."""
 
-    image: Path = field(metadata={"must_exist": True, "doc": "4-D NIfTI, one volume per gradient"})
-    bvals: Path = field(metadata={"must_exist": True, "doc": "b-values file (FSL .bval, s/mm^2)"})
-    bvecs: Path = field(metadata={"must_exist": True, "doc": "b-vectors file (FSL .bvec, 3 rows)"})
+    image: Path = field(metadata={"must_exist": True, "doc": "4-D NIfTI, one volume per gradient, or a folder of "
+                                                            "DICOM files (b-values and gradients from its tags)"})
+    bvals: Path | None = field(default=None, metadata={
+        "must_exist": True, "doc": "b-values file (FSL .bval, s/mm^2); with a NIfTI image only"})
+    bvecs: Path | None = field(default=None, metadata={
+        "must_exist": True, "doc": "b-vectors file (FSL .bvec, 3 rows); with a NIfTI image only"})
+    series: str | int | None = field(default=None, metadata={
+        "doc": "DICOM folder with several series: the diffusion series' SeriesNumber, SeriesDescription or "
+               "SeriesInstanceUID"})
     bvecs_convention: Literal["fsl", "world"] = field(default="fsl", metadata={
         "doc": "fsl: voxel axes of the stored image, x negated for a positive-determinant affine "
-               "(FSL, dcm2niix); world: scanner axes"})
+               "(FSL, dcm2niix); world: scanner axes (NIfTI image only; DICOM is converted to fsl)"})
     b0_threshold: float = field(default=50.0, metadata={
         "range": (0.0, None), "doc": "b-values up to this (s/mm^2) are non-weighted volumes"})
+
+    def __post_init__(self):
+        if self.image.is_dir():
+            for key in ("bvals", "bvecs"):
+                if getattr(self, key) is not None:
+                    raise InputError(f"segment.dwi.{key}: not used with a DICOM folder ({self.image}): "
+                                     "the gradients come from its DICOM tags; remove the key")
+        else:
+            for key in ("bvals", "bvecs"):
+                if getattr(self, key) is None:
+                    raise InputError(f"segment.dwi.{key}: required with a NIfTI image ({self.image})")
+            if self.series is not None:
+                raise InputError(f"segment.dwi.series: only for a DICOM folder; {self.image} is a file")
 
 
 @dataclass(frozen=True)
@@ -117,7 +137,13 @@ class SegmentConfig:
     """``segment`` section: inputs, the level-set models and label assembly (paper §4.1–4.2)."""
 
     mri: Path | None = field(default=None, metadata={
-        "must_exist": True, "doc": "anatomical MRI (NIfTI), defines the label grid"})
+        "must_exist": True, "doc": "anatomical MRI: a NIfTI file or a folder of DICOM files; defines the label grid"})
+    series: str | int | None = field(default=None, metadata={
+        "doc": "DICOM folder with several series: the anatomical series' SeriesNumber, SeriesDescription or "
+               "SeriesInstanceUID"})
+    bias_correction: Literal["none", "n4"] = field(default="none", metadata={
+        "doc": "intensity inhomogeneity (receive-coil bias field) correction of the MRI before the level sets: "
+               "n4 = SimpleITK's N4 (optional extra pixmuscle[scanner]); the field is written for QC"})
     dti_tensor: Path | None = field(default=None, metadata={
         "must_exist": True, "doc": "diffusion tensor image (NIfTI, 6 components)"})
     dti_v1: Path | None = field(default=None, metadata={
@@ -163,6 +189,8 @@ class SegmentConfig:
     qc_png: bool = field(default=True, metadata={"doc": "write per-slice overlay PNGs"})
 
     def __post_init__(self):
+        if self.series is not None and self.mri is not None and not self.mri.is_dir():
+            raise InputError(f"segment.series: only for a DICOM folder; segment.mri {self.mri} is a file")
         if self.dti_tensor is not None and self.dti_v1 is not None:
             raise InputError("segment.dti_v1: give either dti_tensor (preferred: tensors are interpolated "
                              "correctly) or dti_v1, not both")

@@ -1,7 +1,10 @@
-"""``segment`` stage: NIfTI MRI + DTI (+ IMCT/IMAT masks) -> ``segmentation.h5``.
+"""``segment`` stage: MRI + DTI (+ IMCT/IMAT masks) -> ``segmentation.h5``.
 
 Reads the inputs named in the ``segment`` config section (:class:`~pixmuscle.segmentation.
-config.SegmentConfig`), fits the tensor of a scanner DWI series when ``segment.dwi`` is given
+config.SegmentConfig`): NIfTI files, or DICOM folders converted once into ``<out folder>/dicom/``
+(:mod:`pixmuscle.io.dicom`); removes the MRI's bias field when ``bias_correction: n4``
+(:mod:`pixmuscle.imaging.bias`; the field is written as ``<stem>_bias_field.nii.gz`` and
+``<stem>_qc/bias_field.png``); fits the tensor of a scanner DWI series when ``segment.dwi`` is given
 (:mod:`pixmuscle.stages.dwi_qc`: FA/MD/V1 maps in the QC folder), maps the DTI onto the MRI grid
 through the affines (tensors are interpolated, never eigenvectors), runs :func:`pixmuscle.segmentation.volume.segment_volume`
 and writes
@@ -97,9 +100,14 @@ def run_segment(cfg, out_path, progress=None, *, synthetic=False):
     out_path = Path(out_path)
     prepare_output_dir(out_path.parent, "output folder")  # before the work, not after it
     stem = out_path.name[:-len(out_path.suffix)] if out_path.suffix else out_path.name
+    inputs = _input_paths(cfg)                             # as the config names them (a DICOM folder too)
     with capture_warnings() as warnings:
-        mri, res, inputs, masks = _segment(cfg, out_path.with_name(f"{stem}_qc"), progress)
+        mri, res, masks, bias_field = _segment(scanner_inputs(cfg, out_path.parent / "dicom"),
+                                               out_path.with_name(f"{stem}_qc"), progress)
     affine = mri.affine
+    if bias_field is not None:
+        save_volume(out_path.with_name(f"{stem}_bias_field.nii.gz"), bias_field, affine, kind="image")
+        write_bias_png(out_path.with_name(f"{stem}_qc") / "bias_field.png", bias_field)
     # the side outputs first, the stage file last: it is what marks the stage as done (a full disk
     # half-way must not leave a complete-looking segmentation.h5 without its images)
     save_volume(out_path.with_name(f"{stem}_labels.nii.gz"), res.labels, affine, kind="labels")
@@ -111,6 +119,35 @@ def run_segment(cfg, out_path, progress=None, *, synthetic=False):
     write_segmentation(out_path, res, affine, config=cfg, inputs=inputs,
                        attrs=stage_attrs("segment", inputs, warnings, synthetic=synthetic), masks=masks)
     return res
+
+
+def _input_paths(cfg) -> list[Path]:
+    """The input files and folders the config names, for the stage's provenance."""
+    dwi_files = () if cfg.dwi is None else (cfg.dwi.image, cfg.dwi.bvals, cfg.dwi.bvecs)
+    return [p for p in (cfg.mri, cfg.dti_tensor, cfg.dti_v1, *dwi_files, cfg.imct_mask, cfg.imat_mask,
+                        cfg.aponeurosis_mask) if p is not None]
+
+
+def scanner_inputs(cfg, cache_dir) -> SegmentConfig:
+    """``cfg`` with its DICOM folders (``mri``, ``dwi.image``) replaced by their NIfTI conversions.
+
+    Conversions are cached in ``cache_dir`` by the content of the series' files
+    (:func:`pixmuscle.io.dicom.dicom_to_nifti`); a config of NIfTI files is returned as it is.
+    """
+    changes = {}
+    if cfg.mri is not None and cfg.mri.is_dir():
+        from pixmuscle.io.dicom import dicom_to_nifti
+
+        changes.update(mri=dicom_to_nifti(cfg.mri, cache_dir, series=cfg.series, key="segment.series").image,
+                       series=None)
+    if cfg.dwi is not None and cfg.dwi.image.is_dir():
+        from pixmuscle.io.dicom import dicom_to_nifti
+
+        conv = dicom_to_nifti(cfg.dwi.image, cache_dir, series=cfg.dwi.series, key="segment.dwi.series",
+                              diffusion=True)
+        changes["dwi"] = dataclasses.replace(cfg.dwi, image=conv.image, bvals=conv.bvals, bvecs=conv.bvecs,
+                                             series=None, bvecs_convention="fsl")
+    return dataclasses.replace(cfg, **changes) if changes else cfg
 
 
 def seeds_in_cm(cfg) -> dict:
@@ -125,11 +162,18 @@ def seeds_in_cm(cfg) -> dict:
 
 
 def _segment(cfg, qc_dir, progress):
-    """Read the inputs and segment: (MRI volume, SegmentationResult, input paths, masks to keep:
-    name → (I, J, K) bool on the MRI grid, the aponeurosis when given)."""
+    """Read the inputs (NIfTI) and segment: (MRI volume as segmented, SegmentationResult, masks to keep:
+    name → (I, J, K) bool on the MRI grid, the aponeurosis when given; the bias field or None)."""
     cfg = dataclasses.replace(cfg, seeds=seeds_in_cm(cfg), seed_units="cm")
     mri = load_volume(cfg.mri, kind="image")
     shape, affine = mri.data.shape, mri.affine
+    bias_field = None
+    if cfg.bias_correction == "n4":
+        from pixmuscle.imaging.bias import n4_correct
+
+        corrected, bias_field = n4_correct(mri.data, mri.spacing)
+        _LOG.info("bias field (N4): %.2f to %.2f over the image", bias_field.min(), bias_field.max())
+        mri = dataclasses.replace(mri, data=corrected)
     d_grid, covered = _dti_on_grid(cfg, shape, affine, qc_dir)
     imct = None if cfg.imct_mask is None else _mask_on_grid(cfg.imct_mask, shape, affine,
                                                            "segment.imct_mask")
@@ -139,9 +183,6 @@ def _segment(cfg, qc_dir, progress):
     if cfg.aponeurosis_mask is not None:  # connective tissue, but not IMCT (paper Table 3)
         masks["aponeurosis"] = _mask_on_grid(cfg.aponeurosis_mask, shape, affine, "segment.aponeurosis_mask")
         imct = masks["aponeurosis"] if imct is None else imct | masks["aponeurosis"]
-    dwi_files = () if cfg.dwi is None else (cfg.dwi.image, cfg.dwi.bvals, cfg.dwi.bvecs)
-    inputs = [p for p in (cfg.mri, cfg.dti_tensor, cfg.dti_v1, *dwi_files, cfg.imct_mask, cfg.imat_mask,
-                          cfg.aponeurosis_mask) if p is not None]
     if progress is None:
         from pixmuscle.progress import progress as bar
 
@@ -154,7 +195,32 @@ def _segment(cfg, qc_dir, progress):
         _LOG.warning("segmentation QC: %s", finding.message)
     if "aponeurosis" in masks:
         masks["aponeurosis"] &= res.labels == 2  # only where the labels have connective tissue
-    return mri, res, inputs, masks
+    return mri, res, masks, bias_field
+
+
+def write_bias_png(path, field) -> Path:
+    """The bias field's middle slice as a PNG (colour bar: multiplicative factor)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    k = field.shape[2] // 2
+    fig = Figure(figsize=(5, 4.2), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    im = ax.imshow(field[:, :, k].T, origin="lower", cmap="coolwarm", interpolation="nearest")
+    fig.colorbar(im, ax=ax, label="bias field (multiplicative)")
+    ax.set_title(f"N4 bias field, slice {k}")
+    ax.set_axis_off()
+    try:
+        fig.savefig(path)
+    except OSError as exc:
+        path.unlink(missing_ok=True)
+        if exc.errno in WRITE_ERRNOS:
+            raise OutputError(describe_os_error(exc, path)) from None
+        raise
+    return path
 
 
 def write_qc_pngs(folder, mri, res: SegmentationResult):
