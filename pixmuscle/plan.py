@@ -401,16 +401,13 @@ def config_paths(section: Any) -> tuple[Path, ...]:
 
 
 def _with_segmentation(bm: Any, seg_path: Path, base_dir: Path) -> Any:
-    """The build_model section pointed at this subject's segmentation.h5."""
+    """The build_model section pointed at this subject's segmentation.h5 (a label map it names, a
+    segmentation corrected by hand, then replaces the segmentation's labels)."""
     from .model.config import BuildModelConfig
 
     if bm is None:
         bm = parse_section(BuildModelConfig, {"segmentation": str(seg_path)}, "build_model", base_dir)
-    fields = {f.name for f in dataclasses.fields(bm)}
-    changes = {"segmentation": seg_path}
-    if "labels" in fields:
-        changes["labels"] = None
-    return dataclasses.replace(bm, **changes)
+    return dataclasses.replace(bm, segmentation=seg_path)
 
 
 def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> list[Stage]:
@@ -474,6 +471,8 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
         extra.update({k[:-len(f"_{headline}")]: str(v) for k, v in experiments.items() if k.endswith(f"_{headline}")})
         if cfg.segment is not None and getattr(cfg.segment, "dwi", None) is not None:
             extra["dwi_qc"] = str(seg_path.with_name("segmentation_qc"))
+        if cfg.segment is not None and getattr(cfg.segment, "bias_correction", "none") != "none":
+            extra["bias_field"] = str(seg_path.with_name("segmentation_bias_field.nii.gz"))
         if cfg.params:
             extra["study"] = {k: v for k, v in cfg.params}
         out = cfg.output_dir / "report"

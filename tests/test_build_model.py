@@ -228,8 +228,11 @@ def test_config_validation(tmp_path):
     cfg = parse_section(BuildModelConfig, {"labels": "labels.nii.gz", "tissue_map": {1: {"muscle": "sol"}, 0: "background"},
                                            "fiber_fallback": "muscle_mean"}, "build_model", tmp_path)
     assert cfg.labels == lab and cfg.require_input() == lab
+    both = parse_section(BuildModelConfig, {"labels": "labels.nii.gz", "segmentation": "labels.nii.gz"}, "build_model", tmp_path)
+    assert both.require_input() == lab           # a corrected label map with the segmentation it corrects
     with pytest.raises(InputError, match="not both"):
-        parse_section(BuildModelConfig, {"labels": "labels.nii.gz", "segmentation": "labels.nii.gz"}, "build_model", tmp_path)
+        parse_section(BuildModelConfig, {"labels": "labels.nii.gz", "tissue_map": {1: "muscle"},
+                                         "label_names": {"a": "fat"}}, "build_model", tmp_path)
     with pytest.raises(InputError, match="file not found"):
         parse_section(BuildModelConfig, {"segmentation": "nope.h5"}, "build_model", tmp_path)
     with pytest.raises(InputError, match=r"build_model.tissue_map\[1\]: unknown tissue 'bon'"):

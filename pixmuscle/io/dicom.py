@@ -368,7 +368,7 @@ _RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0])
 def write_mr_series(folder: str | os.PathLike, data, affine_cm, *, series_number: int = 1,
                     description: str = "T1", study_uid: str | None = None, patient_position: str = "HFS",
                     bvals=None, gradients=None, names: Sequence[str] | None = None,
-                    with_bvalues: bool = True) -> list[Path]:
+                    with_bvalues: bool = True, uid_seed: str | None = None) -> list[Path]:
     """Write a volume as a single-frame MR Image Storage series, one file per slice (and volume).
 
     Parameters
@@ -390,6 +390,8 @@ def write_mr_series(folder: str | os.PathLike, data, affine_cm, *, series_number
         File names, one per written file in (volume, slice) order; default ``IM_<n>.dcm``.
     with_bvalues : bool
         Write the diffusion tags (False makes a DWI series without b-values).
+    uid_seed : str, optional
+        Derive every UID from this text (the same files on every run); default random UIDs.
 
     Returns
     -------
@@ -416,15 +418,18 @@ def write_mr_series(folder: str | os.PathLike, data, affine_cm, *, series_number
     slope = (hi - lo) / 65535.0 if hi > lo else 1.0
     stored = np.rint((data - lo) / slope).clip(0, 65535).astype(np.uint16)
     n_i, n_j, n_k, n_v = data.shape
-    study_uid = study_uid or generate_uid()
-    series_uid, frame_uid = generate_uid(), generate_uid()
+    def uid(*what) -> str:
+        return generate_uid() if uid_seed is None else generate_uid(entropy_srcs=[uid_seed, *map(str, what)])
+
+    study_uid = study_uid or uid("study")
+    series_uid, frame_uid = uid("series", series_number), uid("frame")
     written = []
     for v in range(n_v):
         for k in range(n_k):
             n = v * n_k + k
             meta = FileMetaDataset()
             meta.MediaStorageSOPClassUID = MRImageStorage
-            meta.MediaStorageSOPInstanceUID = generate_uid()
+            meta.MediaStorageSOPInstanceUID = uid("instance", series_number, n)
             meta.TransferSyntaxUID = ExplicitVRLittleEndian
             ds = pydicom.Dataset()
             ds.file_meta = meta

@@ -14,12 +14,19 @@ from ..errors import InputError
 class BuildModelConfig:
     """Label volume → pixel-point model (paper §4.2).
 
-    The input is either a NIfTI label image (``labels``, values mapped by ``tissue_map``) or the
-    ``segmentation.h5`` of the segment stage (``segmentation``), not both. When the pipeline runs
-    the segment stage it fills in ``segmentation`` itself, so neither needs to be given then.
+    The input is a label map (``labels``: NIfTI, a 3D Slicer ``.seg.nrrd`` or NRRD), the
+    ``segmentation.h5`` of the segment stage (``segmentation``), or both: then the label map (a
+    segmentation corrected by hand) replaces the segmentation's labels, placed on its grid through the
+    affines, and the fibres and muscle names come from the segmentation. When the pipeline runs the
+    segment stage it fills in ``segmentation`` itself.
+
+    A label map's values are tissues by ``tissue_map``, or, when the file names them (Slicer segments,
+    an ITK-SNAP ``label_descriptions`` file), by their names (:mod:`pixmuscle.model.label_names`).
     """
 
-    labels: Path | None = field(default=None, metadata={"must_exist": True, "doc": "NIfTI label image (any orientation; header units mm or cm); its values are mapped by tissue_map"})
+    labels: Path | None = field(default=None, metadata={"must_exist": True, "doc": "label map: NIfTI (any orientation; header units mm or cm), 3D Slicer .seg.nrrd or NRRD; values mapped by tissue_map, or by their names (Slicer segments, label_descriptions)"})
+    label_descriptions: Path | None = field(default=None, metadata={"must_exist": True, "doc": "ITK-SNAP label description file naming the values of the labels file"})
+    label_names: dict[str, Any] | None = field(default=None, metadata={"doc": "label (segment) name → muscle | connective_tissue | fat | bone | background | {muscle: <name>}, for names that are not a tissue or a muscle of the case"})
     segmentation: Path | None = field(default=None, metadata={"must_exist": True, "doc": "segmentation.h5 of the segment stage (tissue codes, muscle ids and names, fibres)"})
     fibers: Path | None = field(default=None, metadata={"must_exist": True, "doc": "4-D NIfTI fibre image (I, J, K, 3) on the label grid, scanner-frame vectors of any length and sign; overrides /fiber of segmentation.h5"})
     fiber_components: Literal["world", "voxel", "fsl"] = field(default="world", metadata={"doc": "axes of the fibre image's vector components: world (scanner axes of the affine), voxel (stored voxel axes) or fsl (FSL dtifit V1 convention)"})
@@ -29,14 +36,18 @@ class BuildModelConfig:
     masks: dict[str, Path] = field(default_factory=dict, metadata={"must_exist": True, "doc": "extra node sets: set name → NIfTI mask on the label grid (non-zero = in the set)"})
 
     def __post_init__(self):
-        if self.labels is not None and self.segmentation is not None:
-            raise InputError("build_model: give either 'labels' (a NIfTI label image) or 'segmentation' "
-                             "(segmentation.h5), not both")
+        if self.label_descriptions is not None and self.labels is None:
+            raise InputError("build_model.label_descriptions: names the values of 'labels', which is not given")
+        if self.tissue_map is not None and (self.label_names is not None or self.label_descriptions is not None):
+            raise InputError("build_model.tissue_map: give either tissue_map (label values) or label names "
+                             "(label_names / label_descriptions), not both")
         from .build import _check_direction, parse_tissue_map
         from .nodesets import _check_set_name
 
         if self.tissue_map is not None:
             parse_tissue_map(self.tissue_map, "build_model.tissue_map")
+        for name, spec in (self.label_names or {}).items():
+            parse_tissue_map({1: spec}, f"build_model.label_names.{name}")
         for name, d in (self.muscle_fibers or {}).items():
             _check_direction(d, f"build_model.muscle_fibers.{name}")
         for name in self.masks:

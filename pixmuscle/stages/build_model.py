@@ -1,6 +1,7 @@
-"""Stage ``build-model``: labels (NIfTI or segmentation.h5) → ``model.h5``.
+"""Stage ``build-model``: labels (NIfTI, Slicer .seg.nrrd / NRRD, or segmentation.h5) → ``model.h5``.
 
-Reads the inputs named by :class:`~pixmuscle.model.config.BuildModelConfig`, calls
+Reads the inputs named by :class:`~pixmuscle.model.config.BuildModelConfig` (label maps through
+:mod:`pixmuscle.io.labelmap`; a label map given with a segmentation replaces its labels), calls
 :func:`pixmuscle.model.build.model_from_labels` and writes the model (schema ``pixmuscle.model``
 v1) through :func:`pixmuscle.io.model.save_model`.
 """
@@ -14,11 +15,13 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..io.labelmap import read_label_map
 from ..io.lineage import capture_warnings, stage_attrs
 from ..io.model import save_model
 from ..io.segmentation import read_segmentation
 from ..model.build import model_from_labels
 from ..model.config import BuildModelConfig
+from ..model.label_names import tissue_map_from_names
 
 _LOG = logging.getLogger(__name__)
 
@@ -32,6 +35,34 @@ def _same_grid(name: str, path: Path, shape, affine, ref_path: Path, ref_shape, 
             f"{name} {path} is not on the label grid of {ref_path}: shape {tuple(shape)} vs {tuple(ref_shape)}, "
             f"voxel → cm affine {np.round(affine, 4).tolist()} vs {np.round(ref_affine, 4).tolist()}; "
             "resample it onto the label grid first")
+
+
+def _labels_on_grid(lm, grid):
+    """A label map's labels and affine, placed on ``grid`` = (shape, affine, file) when given.
+
+    The same grid: as they are; another grid with an affine (a Slicer segmentation cropped to its extent,
+    another resolution): nearest-neighbour resampling through both affines; no affine: only a map of the
+    grid's own shape, which is then taken to lie on it.
+    """
+    if grid is None:
+        if lm.affine is None:
+            raise InputError(f"{lm.path}: the label map has no geometry (no 'space directions' / 'space origin'), "
+                             "so its voxel size and position are unknown; save it with its geometry")
+        return lm.labels, lm.affine
+    shape, affine, ref = grid
+    if lm.affine is None:
+        if tuple(lm.labels.shape) != tuple(shape):
+            raise InputError(f"{lm.path}: the label map has no geometry and its grid {tuple(lm.labels.shape)} differs "
+                             f"from the MRI grid {tuple(shape)} of {ref}: nothing maps one onto the other; save it "
+                             "with its geometry (space directions and origin)")
+        _LOG.warning("%s has no geometry; taken to lie on the MRI grid of %s (same shape)", lm.path, ref)
+        return lm.labels, affine
+    if tuple(lm.labels.shape) == tuple(shape) and np.allclose(lm.affine, affine, atol=AFFINE_ATOL):
+        return lm.labels, affine
+    from ..imaging.resample import resample_labels
+
+    _LOG.info("%s: placing the label map %s on the MRI grid %s (nearest neighbour)", lm.path, lm.labels.shape, shape)
+    return resample_labels(lm.labels, lm.affine, shape, affine, name=f"build_model.labels {lm.path}"), affine
 
 
 def run_build_model(cfg: BuildModelConfig, out_path: str | Path, progress: Any = None, *,
@@ -74,27 +105,45 @@ def _build(cfg: BuildModelConfig, progress: Any):
     def say(msg: str) -> None:
         _say(progress, msg)
 
-    if cfg.labels is not None or cfg.fibers is not None or cfg.masks:
+    if cfg.fibers is not None or cfg.masks:
         from ..imaging.nifti import load_volume
 
     src = Path(cfg.require_input())
     inputs = [src]
     muscle_ids, names, fibers = None, None, None
+    tissue_map = cfg.tissue_map
     seg_masks: dict = {}
     if cfg.segmentation is not None:
-        say(f"reading {src}")
-        seg = read_segmentation(src)
+        say(f"reading {cfg.segmentation}")
+        seg = read_segmentation(cfg.segmentation)
         labels, affine = seg["labels"], seg["affine"]
         muscle_ids, names, fibers = seg["muscle_id"], seg["muscle_names"], seg["fiber"]
         seg_masks = seg["masks"]
         if muscle_ids is not None and muscle_ids.shape != labels.shape:
-            raise InputError(f"{src}: /muscle_id has shape {muscle_ids.shape}, /labels {labels.shape}")
+            raise InputError(f"{cfg.segmentation}: /muscle_id has shape {muscle_ids.shape}, /labels {labels.shape}")
         if fibers is not None and fibers.shape != (*labels.shape, 3):
-            raise InputError(f"{src}: /fiber has shape {fibers.shape}, expected {(*labels.shape, 3)}")
-    else:
-        say(f"reading {src}")
-        vol = load_volume(src, kind="labels")
-        labels, affine = vol.data, np.asarray(vol.affine, dtype=float)
+            raise InputError(f"{cfg.segmentation}: /fiber has shape {fibers.shape}, expected {(*labels.shape, 3)}")
+    if cfg.labels is not None:
+        say(f"reading {cfg.labels}")
+        lm = read_label_map(cfg.labels, descriptions=cfg.label_descriptions)
+        for note in lm.notes:
+            _LOG.warning(note)
+        if cfg.label_descriptions is not None:
+            inputs.append(Path(cfg.label_descriptions))
+        if cfg.segmentation is not None:               # a corrected segmentation: on its grid, its muscles
+            inputs.append(Path(cfg.segmentation))
+            grid = (labels.shape, affine, Path(cfg.segmentation))
+            muscles = list(names or [])
+            muscle_ids, names = None, None
+        else:
+            grid, muscles = None, []
+        labels, affine = _labels_on_grid(lm, grid)
+        if lm.names:
+            tissue_map = tissue_map_from_names(lm.names, cfg.label_names, [*muscles, *(cfg.muscle_fibers or {})],
+                                               str(cfg.labels))
+        elif cfg.label_names is not None:
+            raise InputError(f"build_model.label_names: {cfg.labels} names none of its labels (a plain label map: "
+                             "map its values with tissue_map, or give label_descriptions)")
     if cfg.fibers is not None:
         fv = load_volume(cfg.fibers, kind="vectors", components=cfg.fiber_components)
         if fv.data.ndim != 4 or fv.data.shape[3] != 3:
@@ -112,7 +161,7 @@ def _build(cfg: BuildModelConfig, progress: Any):
             _LOG.warning("mask '%s' (%s) is empty: node set '%s' will be empty", name, p, name)
         inputs.append(Path(p))
     model = model_from_labels(
-        labels, affine, tissue_map=cfg.tissue_map, fibers=fibers, muscle_fibers=cfg.muscle_fibers,
+        labels, affine, tissue_map=tissue_map, fibers=fibers, muscle_fibers=cfg.muscle_fibers,
         fiber_fallback=cfg.fiber_fallback, masks=masks, muscle_ids=muscle_ids, muscle_names=names,
     )
     return model, inputs

@@ -12,6 +12,8 @@ and writes
 * ``<out>`` — HDF5, schema ``pixmuscle.segmentation`` v1 (docs/architecture.md);
 * ``<stem>_labels.nii.gz``, ``<stem>_muscles.nii.gz`` (muscle ids), ``<stem>_fibers.nii.gz``
   — for ITK-SNAP / 3D Slicer;
+* ``<stem>.seg.nrrd`` — one 3D Slicer segmentation with a named segment per muscle and tissue, to
+  correct by hand and give back as ``build_model.labels`` (written when pynrrd is installed);
 * ``<stem>_qc/slice_XXX.png`` — MRI with tissue and muscle contours, one per slice.
 """
 
@@ -114,6 +116,7 @@ def run_segment(cfg, out_path, progress=None, *, synthetic=False):
     save_volume(out_path.with_name(f"{stem}_muscles.nii.gz"), res.muscle_id, affine,
                 kind="labels")
     save_volume(out_path.with_name(f"{stem}_fibers.nii.gz"), res.fiber, affine, kind="vectors")
+    write_slicer_segmentation(out_path.with_name(f"{stem}.seg.nrrd"), res, affine)
     if cfg.qc_png:
         write_qc_pngs(out_path.with_name(f"{stem}_qc"), mri.data, res)
     write_segmentation(out_path, res, affine, config=cfg, inputs=inputs,
@@ -196,6 +199,31 @@ def _segment(cfg, qc_dir, progress):
     if "aponeurosis" in masks:
         masks["aponeurosis"] &= res.labels == 2  # only where the labels have connective tissue
     return mri, res, masks, bias_field
+
+
+def write_slicer_segmentation(path, res: SegmentationResult, affine) -> Path | None:
+    """The segmentation as one named label map for 3D Slicer: muscle ``m`` is value ``m`` named by its
+    muscle, then connective_tissue, fat and bone (and ``muscle`` for muscle voxels of no muscle).
+    Names are those :mod:`pixmuscle.model.label_names` maps back. None when pynrrd is missing."""
+    try:
+        import nrrd  # noqa: F401
+    except ImportError:
+        _LOG.info("pynrrd is not installed: no %s (pip install 'pixmuscle[scanner]')", Path(path).name)
+        return None
+    from pixmuscle.io.labelmap import write_seg_nrrd
+
+    m = len(res.muscle_names)
+    combined = np.where(res.labels == 1, res.muscle_id, 0).astype(np.int32)
+    names = {i + 1: n for i, n in enumerate(res.muscle_names)}
+    for k, (code, tissue) in enumerate(((2, "connective_tissue"), (3, "fat"), (4, "bone"))):
+        combined[res.labels == code] = m + 1 + k
+        names[m + 1 + k] = tissue
+    stray = (res.labels == 1) & (res.muscle_id == 0)
+    if stray.any():
+        combined[stray] = m + 4
+        names[m + 4] = "muscle"
+    present = set(np.unique(combined).tolist())
+    return write_seg_nrrd(path, combined, affine, {v: n for v, n in names.items() if v in present})
 
 
 def write_bias_png(path, field) -> Path:

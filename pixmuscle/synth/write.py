@@ -138,6 +138,7 @@ def generate_samples(outdir="data/synthetic", names=None) -> dict:
         out["leg_demo_dwi"] = write_dwi_sample(outdir)
         out["leg_demo_activation"] = {"image": write_activation_sample(outdir)}
         out["muscle_block"] = {"labels": write_muscle_block_labels(outdir)}
+        out["leg_demo_dicom"] = {"folder": write_dicom_sample(outdir)}     # after the DWI it converts
     return out
 
 
@@ -184,6 +185,51 @@ def write_dwi_sample(outdir="data/synthetic", prefix: str = "leg_demo", snr: flo
     s0 = np.where(np.trace(D, axis1=-2, axis2=-1) > 0, 1000.0, 20.0)
     data, bvals, g = synthesize_dwi(D, s0=s0, snr=snr, seed=int(kwargs.get("seed", 0)) + 100)
     return write_dwi(Path(outdir) / f"{prefix}_dwi", data, ph.dti_affine, bvals, g, orientation="LPS")
+
+
+def write_dicom_sample(outdir="data/synthetic", prefix: str = "leg_demo") -> Path:
+    """SYNTHETIC scanner export of a committed sample: ``{prefix}_dicom/``, a folder of DICOM files with three
+    series as a scanner writes them, for ``configs/scanner.yaml``.
+
+    Series 1 "localizer" (one slice), series 3 "T1 axial" (the sample's MRI) and series 7 "DWI b500" (the
+    sample's DWI, its b-values and gradient directions in the MR Diffusion Macro's tags), all single-frame MR
+    Image Storage with 16-bit pixels and a rescale slope/intercept, file names without order or extension.
+    Needs the optional extra ``scanner`` (pydicom); UIDs are derived from the prefix, so a rerun rewrites the
+    same files.
+    """
+    import nibabel as nib
+
+    from pixmuscle.imaging.dwi import fsl_bvecs_to_world, read_gradients
+    from pixmuscle.imaging.nifti import load_volume
+    from pixmuscle.io.dicom import write_mr_series
+
+    outdir = Path(outdir)
+    folder = outdir / f"{prefix}_dicom"
+    if folder.exists():
+        for p in folder.iterdir():
+            p.unlink()
+    mri = load_volume(outdir / f"{prefix}_mri.nii.gz")
+    img = nib.load(str(outdir / f"{prefix}_dwi.nii.gz"))
+    dwi = np.asarray(img.dataobj, dtype=float)
+    affine = np.asarray(img.affine, float)
+    affine[:3] *= 0.1                                           # mm → cm
+    bvals, bvecs = read_gradients(outdir / f"{prefix}_dwi.bval", outdir / f"{prefix}_dwi.bvec", dwi.shape[3])
+    study = f"{prefix} study"
+    rng = np.random.default_rng(7)
+
+    def names(n, series):
+        return [f"{series:02d}{x:06X}" for x in rng.permutation(n) * 7919 % 999983]
+
+    k = mri.data.shape[2] // 2
+    write_mr_series(folder, mri.data[:, :, k:k + 1], mri.affine @ np.array(
+        [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, k], [0, 0, 0, 1]]), series_number=1, description="localizer",
+        names=names(1, 1), uid_seed=study)
+    write_mr_series(folder, mri.data, mri.affine, series_number=3, description="T1 axial",
+                    names=names(mri.data.shape[2], 3), uid_seed=study)
+    write_mr_series(folder, dwi, affine, series_number=7, description="DWI b500", bvals=bvals,
+                    gradients=fsl_bvecs_to_world(bvecs, img.affine), names=names(dwi.shape[2] * dwi.shape[3], 7),
+                    uid_seed=study)
+    return folder
 
 
 def write_tendon_labels(outdir="data/synthetic", h=(0.2, 0.2, 0.125)) -> Path:

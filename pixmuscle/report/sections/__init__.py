@@ -9,7 +9,8 @@ declared. Sections are drawn in increasing ``order``, after the per-model compar
 the solver statistics.
 
 Sections of pixmuscle: ``activation`` (α per muscle), ``muscle_forces`` (force by muscle),
-``force_length`` (force–length curves) and ``dwi`` (the DWI tensor fit).
+``force_length`` (force–length curves), ``dwi`` (the DWI tensor fit) and ``bias_field`` (the MRI's
+N4 bias field).
 """
 
 from __future__ import annotations
@@ -47,6 +48,8 @@ class ReportInputs:
         ``force_length_<model>.h5`` of the headline model (:mod:`pixmuscle.io.force_length`).
     dwi_qc : Path or None
         Folder of the segmentation's DWI-fit QC maps (:mod:`pixmuscle.stages.dwi_qc`).
+    bias_field : Path or None
+        The MRI's bias field as N4 estimated it (``segmentation_bias_field.nii.gz``).
     """
 
     results: Any
@@ -58,17 +61,19 @@ class ReportInputs:
     muscle_forces: Path | None = None
     force_length: Path | None = None
     dwi_qc: Path | None = None
+    bias_field: Path | None = None
 
     @classmethod
     def build(cls, results, run: Mapping, summary: dict, tissue: dict, outdir: Path, dpi: int) -> ReportInputs:
         """The inputs of one report: ``run`` is the caller's run information (the pipeline names
-        the experiment files there: ``muscle_forces``, ``force_length``, ``dwi_qc``)."""
+        the experiment files there: ``muscle_forces``, ``force_length``, ``dwi_qc``, ``bias_field``)."""
         def path(key):
             return Path(run[key]) if run.get(key) else None
 
         return cls(results=results, summary=summary, tissue=tissue, outdir=Path(outdir), dpi=dpi,
                    activation=(results.info or {}).get("activation"), muscle_forces=path("muscle_forces"),
-                   force_length=path("force_length"), dwi_qc=path("dwi_qc"))
+                   force_length=path("force_length"), dwi_qc=path("dwi_qc"),
+                   bias_field=path("bias_field"))
 
 
 #: Registered report sections (name → entry; entry.attrs: ``inputs``, ``order``).
