@@ -161,7 +161,7 @@ class Run:
 
 
 def child_command(argv: list[str]) -> list[str]:
-    """``[python, _record.py, --child, *argv]``: runs ``python ARGV`` (a script or ``-m module``) in a
+    """``[python, _record.py, --child, *argv]``: runs ``python ARGV`` (a script, ``-m module`` or ``-c code``) in a
     child that, before its BoomerAMG workers stop, writes their peaks to the file named by
     :data:`WORKERS_FILE_ENV`; :func:`run_child` adds them to this process's :func:`peak_rss_GB`."""
     return [sys.executable, str(Path(__file__).resolve()), "--child", *argv]
@@ -211,7 +211,10 @@ def _child(argv: list[str]) -> None:
             close(self)
 
         amg_processes.WorkerGroup.close = close_reporting
-    if argv[0] == "-m":
+    if argv[0] == "-c":
+        sys.argv = ["-c", *argv[2:]]
+        exec(compile(argv[1], "<string>", "exec"), {"__name__": "__main__"})
+    elif argv[0] == "-m":
         sys.argv = [argv[1], *argv[2:]]
         runpy.run_module(argv[1], run_name="__main__", alter_sys=True)
     else:
