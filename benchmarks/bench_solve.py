@@ -675,10 +675,12 @@ def dev_text(x: float | None) -> str:
     return "—" if x is None else f"{x:.1e}"
 
 
-def write_tables(cases, command: str):
-    meta = {"python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count(),
-            "platform": platform.platform(), "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-            "command": command}
+def write_tables(cases, command: str, meta: dict | None = None):
+    """Write bench_solve.json and .md; ``meta`` (the last run's: machine, date, command) is made now unless
+    given (``--tables`` keeps the record's)."""
+    meta = meta or {"python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count(),
+                    "platform": platform.platform(), "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                    "command": command}
     exps = growth_exponents(cases)
     (OUT / "bench_solve.json").write_text(json.dumps({"meta": meta, "cases": cases, "growth_exponents": exps}, indent=1))
     lines = ["# bench_solve: isometric activation sweep of the SYNTHETIC leg (paper Example 2 set-up)", "",
@@ -827,7 +829,7 @@ def main(argv=None):
         return 0
     if args.tables:
         old = json.loads((OUT / "bench_solve.json").read_text())
-        write_tables(old["cases"], old["meta"]["command"])
+        write_tables(old["cases"], old["meta"]["command"], old["meta"])
         return 0
     OUT.mkdir(parents=True, exist_ok=True)
     cases = []
