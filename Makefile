@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.pixmuscle-installed
 DEMO_STAMP := $(VENV)/.pixmuscle-demo
 
-.PHONY: venv demo test bench bench-scale examples examples-small lint clean
+.PHONY: venv demo test bench bench-scale examples examples-small docs-tables lint clean
 
 # `make demo` installs what the demo needs (pixmuscle and the interactive 3-D view: about a minute on a
 # fresh machine); `make test` adds everything the tests use: the test and dev tools, MKL PARDISO, dipy,
@@ -80,6 +80,11 @@ examples-small: $(STAMP)
 	$(BIN)/python benchmarks/bench_examples.py mg_young_old_small
 	$(BIN)/python benchmarks/bench_examples.py lower_leg_small
 	$(BIN)/python benchmarks/fig_examples.py lower_leg_small --out-dir out/lower_leg_small/figures
+
+# the tables of measured figures in README.md and docs/*.md, rewritten from benchmarks/results/*.json
+# (the blocks between <!-- records:NAME --> and <!-- /records:NAME -->; no solve, seconds)
+docs-tables: $(STAMP)
+	$(BIN)/python benchmarks/docs_tables.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check pixmuscle tests benchmarks
