@@ -41,8 +41,7 @@ the scaled pressure mass c/(μ_p V_p) instead (c = ``schur_scale``). On the leg 
 penalty number, FGMRES reaches 10⁻⁶ on the first Newton system (α = 0.095), stopped on the mixed
 residual, in 31, 32 and 32 iterations at K/μ ≈ 95, 951 and 9,506 (5,460 nodes; 79, 116 and 131
 with ``schur: mass`` and the condensed stop, an earlier version), in 34 on 21,169 nodes, 41 on
-73,753 and 46 on the 295,073 of the 0.078-cm pixels at K/μ ≈ 951 (docs/performance.md, "Where
-the solver targets stand").
+73,753 and 46 on the 295,073 of the 0.078-cm pixels at K/μ ≈ 951 (the git history of docs/performance.md).
 
 GMRES. The preconditioner — one V-cycle with fixed sweeps, exact region solves, a diagonal Ŝ — is
 one fixed linear operator, so GMRES preconditioned from the right needs no basis of preconditioned
