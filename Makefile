@@ -36,7 +36,8 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
 
 # the solver-scale records (locking, accuracy and time against voxel FE, Newton, Krylov iterations against
-# K/mu, patch-pressure stability and forces, the multigrids, the sweeps at the defaults up to 74k); hours, not minutes
+# K/mu, patch-pressure stability and forces, the multigrids, the sweeps at the defaults up to 295k), then the
+# time estimate's fit against them and the docs' tables; hours, not minutes
 bench-scale: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[bench]"
 	$(BIN)/python benchmarks/bench_locking.py
@@ -64,6 +65,10 @@ bench-scale: $(STAMP)
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 295k:auto --checkpoint .bench-checkpoints
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 295k:auto_1p --checkpoint .bench-checkpoints
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 75k:auto_1p 20k:auto_2p
+	$(BIN)/python benchmarks/bench_solve.py --append --cases 295k:auto_rebuild100 --checkpoint .bench-checkpoints
+	$(BIN)/python benchmarks/bench_solve.py --probe-direct 75k
+	$(BIN)/python benchmarks/fit_time_estimate.py
+	$(BIN)/python benchmarks/docs_tables.py
 
 # the paper's Examples 3 and 2 at the paper's resolution, each timed stage by stage (wall time, peak memory,
 # load average; per model nodes, Newton iterations, F_max: benchmarks/results/bench_examples.json) and the
