@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.pixmuscle-installed
 DEMO_STAMP := $(VENV)/.pixmuscle-demo
 
-.PHONY: venv demo test bench bench-scale examples examples-small lint clean
+.PHONY: venv demo test bench bench-scale examples examples-small docs-tables lint clean
 
 # `make demo` installs what the demo needs (pixmuscle and the interactive 3-D view: about a minute on a
 # fresh machine); `make test` adds everything the tests use: the test and dev tools, MKL PARDISO, dipy,
@@ -37,7 +37,8 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
 
 # the solver-scale records (locking, accuracy and time against voxel FE, Newton, Krylov iterations against
-# K/mu, patch-pressure stability and forces, the multigrids, the sweeps at the defaults up to 74k); hours, not minutes
+# K/mu, patch-pressure stability and forces, the multigrids, the sweeps at the defaults up to 295k), then the
+# time estimate's fit against them and the docs' tables; hours, not minutes
 bench-scale: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[bench]"
 	$(BIN)/python benchmarks/bench_locking.py
@@ -65,6 +66,10 @@ bench-scale: $(STAMP)
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 295k:auto --checkpoint .bench-checkpoints
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 295k:auto_1p --checkpoint .bench-checkpoints
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 75k:auto_1p 20k:auto_2p
+	$(BIN)/python benchmarks/bench_solve.py --append --cases 295k:auto_rebuild100 --checkpoint .bench-checkpoints
+	$(BIN)/python benchmarks/bench_solve.py --probe-direct 75k
+	$(BIN)/python benchmarks/fit_time_estimate.py
+	$(BIN)/python benchmarks/docs_tables.py
 
 # the paper's Examples 3 and 2 at the paper's resolution, each timed stage by stage (wall time, peak memory,
 # load average; per model nodes, Newton iterations, F_max: benchmarks/results/bench_examples.json) and the
@@ -81,6 +86,11 @@ examples-small: $(STAMP)
 	$(BIN)/python benchmarks/bench_examples.py mg_young_old_small
 	$(BIN)/python benchmarks/bench_examples.py lower_leg_small
 	$(BIN)/python benchmarks/fig_examples.py lower_leg_small --out-dir out/lower_leg_small/figures
+
+# the tables of measured figures in README.md and docs/*.md, rewritten from benchmarks/results/*.json
+# (the blocks between <!-- records:NAME --> and <!-- /records:NAME -->; no solve, seconds)
+docs-tables: $(STAMP)
+	$(BIN)/python benchmarks/docs_tables.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check pixmuscle tests benchmarks

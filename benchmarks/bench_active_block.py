@@ -47,15 +47,16 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
 import pathlib
-import platform
 import sys
 import time
 
 import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from _record import Run  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results"
 STEM = "bench_active_block"
@@ -396,7 +397,7 @@ def write(record: dict) -> None:
              "The record is of forces; wall times were measured on a shared machine under the load averages below "
              "and are upper bounds, not timings.", ""]
     for run in record.get("runs", []):
-        lines.append(f"- `{run['command']}` — {run['date']}, load average {run['load_average']}")
+        lines.append(f"- `{run['command']}` — {run.get('utc', run.get('date'))}, load average {run['load_average']}")
     lines.append("")
     if "law_check" in record:
         lines += ["## Muscle law: independent tensortrax law vs pixmuscle's MUSCLE", "",
@@ -498,7 +499,10 @@ def main(argv=None):
             record["ellipticity"] = ellipticity_limits()
             print(json.dumps(record["ellipticity"]), flush=True)
         cases = {c["case"]: c for c in record.get("cases", [])}
+        command = " ".join([".venv/bin/python benchmarks/bench_active_block.py", *argv])
+        whole = Run(defaults=False, command=command)
         for spec in args.cases:
+            case_run = Run(defaults=False, command=command)
             kind, arg, opts = parse_case(spec)
             if kind == "pixmuscle":
                 row = run_pixmuscle(arg, opts)
@@ -506,14 +510,11 @@ def main(argv=None):
                 fpath = OUT / f"{STEM}_fields_{''.join(ch if ch.isalnum() else '_' for ch in spec)}.npz" if spec in args.fields else None
                 row = run_fe(kind, arg, fpath, opts)
                 row["case"] = spec
+            row.update(case_run.fields())
             cases[row["case"]] = row
             print(json.dumps({k: v for k, v in row.items() if k not in ("alpha",)}), flush=True)
         record["cases"] = sorted(cases.values(), key=lambda c: (c["case"].split(":")[0], c.get("dofs", c.get("nodes", 0))))
-        meta = {"command": " ".join([".venv/bin/python benchmarks/bench_active_block.py", *argv]),
-                "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-                "machine": f"{platform.platform()}, {os.cpu_count()} CPUs, Python {platform.python_version()}",
-                "load_average": [round(x, 1) for x in os.getloadavg()]}
-        record.setdefault("runs", []).append(meta)
+        record.setdefault("runs", []).append(whole.fields())
     write(record)
     if args.figure is not None:
         figure(record, [pathlib.Path(f) for f in args.figure], pathlib.Path(__file__).parents[1] / "docs" / "figures" / "active_block.png")

@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import resource
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _record import Run  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = {"cohort": ROOT / "configs" / "mg_young_old_small.yaml", "study": ROOT / "out" / "bench_cohort" / "study_young.yaml"}
@@ -81,7 +82,7 @@ def run_dask(config: Path, workers: int = 2) -> dict:
 
 def write_md(results: dict, path: Path) -> None:
     lines = ["## bench_cohort: cohort and study, serial vs `--workers 2`", "",
-             f"Machine: {results['machine']}. **Shared with other agents' jobs while measured** (several "
+             f"Machine: {results.get('machine') or next(iter(results['runs'].values()), {}).get('machine')}. **Shared with other agents' jobs while measured** (several "
              "concurrent sessions on the same cores; the 1-minute load average at the start and end of each run is "
              "given): wall times include their load, and a serial / dask ratio above the number of workers means "
              "that load changed between the two runs, not that Dask is faster than parallel.", "",
@@ -90,7 +91,8 @@ def write_md(results: dict, path: Path) -> None:
     for key, r in sorted(results["runs"].items()):
         part, mode = key.split(":")
         peaks = ", ".join(f"{k} {v:.0f}" for k, v in r["peak_rss_mb"].items())
-        la = r.get("load_average_1min")
+        la = r.get("load_average_1min") or ({"start": r["load_average"]["before"][0], "end": r["load_average"]["after"][0]}
+                                            if "load_average" in r else None)
         load = f"{la['start']:.1f}/{la['end']:.1f}" if la else "not recorded (≈10–11 by uptime)"
         lines.append(f"| {part} | {r['cases']} | {mode} | {r['wall_s']:.1f} | {load} | {peaks} | `{r['command']}` |")
     for part in CONFIGS:
@@ -111,7 +113,6 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     js = args.out / "bench_cohort.json"
     results = json.loads(js.read_text()) if js.exists() else {"runs": {}}
-    results["machine"] = f"{platform.platform()}, Python {platform.python_version()}, {os.cpu_count()} cores"
     from pixmuscle.pipeline import load_subjects
 
     write_study_config()
@@ -120,10 +121,12 @@ def main(argv=None) -> int:
         n = len(load_subjects(cfg))
         for mode in args.mode:
             print(f"== {part} ({n} cases), {mode}", flush=True)
-            load0 = os.getloadavg()[0]
+            record = Run(defaults=True, command=f".venv/bin/python benchmarks/bench_cohort.py --part {part} --mode {mode}")
             r = run_serial(cfg) if mode == "serial" else run_dask(cfg)
-            r.update(cases=n, load_average_1min={"start": load0, "end": os.getloadavg()[0]}, measured_utc=time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
-                     command=f"python benchmarks/bench_cohort.py --part {part} --mode {mode}")
+            # dask: the client and its workers (each worker's own peak); serial: this process and the CLI's tree
+            peak = round(sum(r["peak_rss_mb"].values()) / 1024, 2) if mode == "dask" else None
+            r.update(cases=n, **record.fields(peak_rss_GB=peak))
+            r["measured_utc"] = r["utc"]
             print(json.dumps(r, indent=1), flush=True)
             results["runs"][f"{part}:{mode}"] = r
             js.write_text(json.dumps(results, indent=2))

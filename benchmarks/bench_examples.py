@@ -2,9 +2,10 @@
 
 Each example is run with the CLI in a child process, in three calls that each redo only what the
 previous did not (``--force`` on the first): ``--until segment``, ``--until coarsen``, then the
-rest (solve and report). Recorded: wall time and peak memory (largest resident set of the call's
-processes, from ``wait4``) of each call, the 1-minute load average before and after (the machine is
-shared), the node count of every model, and per solved model (``models``): nodes, load steps
+rest (solve and report). Recorded: the fields of :mod:`_record` (command, commit, utc, machine, load
+average before and after, ``defaults``: true for a shipped config run as shipped, peak memory of the
+process tree); per call its wall time, peak memory (the largest process of the call's tree, from
+``wait4``, plus the BoomerAMG workers it started) and 1-minute load average before and after; the node count of every model, and per solved model (``models``): nodes, load steps
 converged, Newton iterations, F_max, the solver's own clock and linear-solver work, status; from
 the report summaries F_max and the coarse vs fine difference (``convergence``), or the cohort's
 per-volume forces.
@@ -27,7 +28,6 @@ import argparse
 import datetime as dt
 import json
 import os
-import platform
 import shlex
 import subprocess
 import sys
@@ -36,6 +36,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _record import Run, run_child  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
@@ -49,17 +52,16 @@ EXAMPLES = {
 
 def _cli(config: str, *args: str) -> tuple[float, int, str, float]:
     """Run ``pixmuscle -q run CONFIG ARGS``; wall time (s), exit code, stderr tail and peak memory (GB:
-    the largest resident set of the child and the processes it waited for, ``wait4``)."""
+    the largest resident set of the child and the processes it waited for, ``wait4``, plus the peaks of
+    the BoomerAMG workers it started, :func:`_record.run_child`)."""
     with tempfile.TemporaryFile("w+") as err:
         t0 = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-m", "pixmuscle.cli", "-q", "run", config, *args], cwd=ROOT,
-                                stdout=subprocess.DEVNULL, stderr=err, text=True)
-        _, status, usage = os.wait4(proc.pid, 0)
+        code, usage, workers_kb = run_child(["-m", "pixmuscle.cli", "-q", "run", config, *args], cwd=ROOT,
+                                            stdout=subprocess.DEVNULL, stderr=err, text=True)
         wall = time.perf_counter() - t0
-        proc.returncode = os.waitstatus_to_exitcode(status)
         err.seek(0)
         tail = err.read()[-1500:]
-    return wall, proc.returncode, tail, usage.ru_maxrss / 1024**2  # Linux: ru_maxrss in kB
+    return wall, code, tail, (usage.ru_maxrss + workers_kb) / 1024**2  # Linux: ru_maxrss in kB
 
 
 def _rel(p: Path) -> str:
@@ -145,10 +147,9 @@ def run(example: str, until: str | None) -> dict:
     steps = [("segment", ("--until", "segment", "--force")), ("build-model + coarsen", ("--until", "coarsen"))]
     if until != "coarsen":
         steps.append(("solve + report", ()))
-    rec = {"example": example, "config": config, "machine": f"{platform.platform()}, Python {platform.python_version()}, "
-           f"{os.cpu_count()} cores (shared)", "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
-           "command": f"python benchmarks/bench_examples.py {example}" + (f" --until {until}" if until else ""),
-           "stages": []}
+    record = Run(defaults=True, command=f".venv/bin/python benchmarks/bench_examples.py {example}"
+                 + (f" --until {until}" if until else ""))
+    rec = {"example": example, "config": config, "date_utc": record.utc[:16].replace("T", " "), "stages": []}
     t_start = time.time()
     for label, args in steps:
         load0 = os.getloadavg()[0]
@@ -159,7 +160,7 @@ def run(example: str, until: str | None) -> dict:
         if code:
             break
     rec["wall_s"] = round(sum(s["wall_s"] for s in rec["stages"]), 1)
-    rec["peak_rss_GB"] = max(s["peak_rss_GB"] for s in rec["stages"])
+    rec.update(record.fields())
     rec["models_nodes"] = _models(out)
     rec["models"] = _model_records(out, since=t_start)
     rec["reports"] = _outcome(out, since=t_start)
@@ -200,9 +201,11 @@ def from_run(example: str, run_dir: Path, wall_s: float | None, peak_gb: float |
     if argv:
         prog = "pixmuscle" if Path(argv[0]).name in ("pixmuscle", "cli.py") else argv[0]
         cmd = shlex.join([prog, *argv[1:]])
-    rec = {"example": example, "config": config, "machine": f"{platform.platform()}, Python "
-           f"{platform.python_version()}, {os.cpu_count()} cores (shared)",
+    rec = {"example": example, "config": config,
            "date_utc": (started or "")[:16].replace("T", " "), "run_dir": str(run_dir),
+           **Run(defaults=False).fields(peak_rss_GB=peak_gb), "commit_source": "the checkout when recorded, not "
+           "necessarily the run's", "utc": started, "defaults_source": "not known for a run made by hand",
+           "load_average": {"before": (load_avg or [None])[:1], "after": (load_avg or [None, None])[1:]},
            "command": cmd, "recorded_with": shlex.join(["python", "benchmarks/bench_examples.py", example,
                                                         "--from-run", str(run_dir)]
                                                        + (["--wall-s", f"{wall_s:g}"] if wall_source.startswith("given") else [])

@@ -23,15 +23,15 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
 import pathlib
-import platform
 import sys
 import time
 
 import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from _record import Run  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results"
 MU = 60.0  # 2 C10 of connective tissue, N/cm²
@@ -69,14 +69,13 @@ def run(kmu_values, refine=(2, 2, 4)) -> list[dict]:
     return rows
 
 
-def write(rows, command: str) -> None:
-    meta = {"command": command, "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "machine": f"{platform.platform()}, {os.cpu_count()} CPUs, Python {platform.python_version()}",
-            "note": "timings taken while other jobs shared the 2-core machine; forces do not depend on that"}
+def write(rows, run: Run) -> None:
+    meta = {**run.fields(), "note": "timings taken while other jobs shared the 2-core machine; forces do not depend on that"}
+    command = meta["command"]
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "bench_locking.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     lines = ["# Volumetric locking: clamped bar, force error against K/μ", "", f"Command: `{command}`", "",
-             f"{meta['date']}, {meta['machine']}; {meta['note']}.", "",
+             f"{meta['utc']}, commit {meta['commit'][:10]}, {meta['machine']['cpus']} CPUs; {meta['note']}.", "",
              "| K/μ | FE force [N] | nodal [N] | nodal error | projected [N] | projected error |", "|---|---|---|---|---|---|"]
     for r in rows:
         n, p = r["nodal"], r["projected"]
@@ -90,8 +89,9 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--kmu", type=float, nargs="+", default=[10.0, 100.0, 833.3, 8333.3], help="values of K/μ")
     args = p.parse_args(argv)
+    record = Run(defaults=False, command=" ".join([".venv/bin/python benchmarks/bench_locking.py", *argv]))
     rows = run(args.kmu)
-    write(rows, " ".join([".venv/bin/python benchmarks/bench_locking.py", *argv]))
+    write(rows, record)
     return 0
 
 

@@ -24,9 +24,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
+import sys
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _record import Run  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
@@ -82,13 +85,16 @@ def run_variant(name: str, steps: int) -> dict:
 
     young_kw, old_kw, solve_extra = _variants()[name]
     config = _case(name, young_kw, old_kw, solve_extra, steps)
-    load0 = os.getloadavg()[0]
+    record = Run(defaults=name == "shipped" and steps == 10,
+                 command=f".venv/bin/python benchmarks/bench_mg_ratio.py --variants {name} --steps {steps}")
     t0 = time.perf_counter()
     ok = run_pipeline(config, force=True, workers=0)
     wall = time.perf_counter() - t0
-    rec = {"variant": name, "ok": bool(ok), "wall_s": round(wall, 1), "load_avg": [round(load0, 1), round(os.getloadavg()[0], 1)],
+    fields = record.fields()
+    rec = {"variant": name, "ok": bool(ok), "wall_s": round(wall, 1),
+           "load_avg": [fields["load_average"]["before"][0], fields["load_average"]["after"][0]],
            "phantom": {"young": young_kw, "old": old_kw}, "solve": solve_extra, "steps": steps,
-           "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime())}
+           "date_utc": fields["utc"][:16].replace("T", " "), **fields}
     for subject in ("young", "old"):
         s = json.loads((WORK / name / "out" / subject / "report" / "summary.json").read_text())
         q = s["compared"]

@@ -18,15 +18,15 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
 import pathlib
-import platform
 import sys
 import time
 
 import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from _record import Run  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results"
 SIZE_CM = (2.0, 1.67, 6.0)
@@ -59,14 +59,14 @@ def run(h: float, methods) -> list[dict]:
     return rows
 
 
-def write(rows, command: str) -> None:
-    meta = {"command": command, "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "machine": f"{platform.platform()}, {os.cpu_count()} CPUs, Python {platform.python_version()}",
-            "load_average": [round(x, 1) for x in os.getloadavg()]}
+def write(rows, run: Run) -> None:
+    meta = run.fields()
+    command = meta["command"]
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "bench_newton.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     lines = ["# Newton on the clamped oblique-fibre muscle block", "", f"Command: `{command}`", "",
-             f"{meta['date']}, {meta['machine']}, load average {meta['load_average']} at the end.", "",
+             f"{meta['utc']}, commit {meta['commit'][:10]}, {meta['machine']['cpus']} CPUs, load average "
+             f"{meta['load_average']['before'][0]} before, {meta['load_average']['after'][0]} after.", "",
              "| volumetric | nodes | Newton iterations per step | cutbacks | F_z [N] | sweep [s] | status |",
              "|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -81,8 +81,9 @@ def main(argv=None):
     p.add_argument("--h", type=float, default=1.0 / 3.0, help="voxel edge, cm")
     p.add_argument("--volumetric", nargs="+", default=["nodal", "projected"])
     args = p.parse_args(argv)
+    record = Run(defaults=False, command=" ".join([".venv/bin/python benchmarks/bench_newton.py", *argv]))
     rows = run(args.h, args.volumetric)
-    write(rows, " ".join([".venv/bin/python benchmarks/bench_newton.py", *argv]))
+    write(rows, record)
     return 0
 
 

@@ -34,9 +34,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
 import pathlib
 import subprocess
 import sys
@@ -44,6 +42,9 @@ import tempfile
 import time
 
 import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from _record import Run  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 OUT = ROOT / "benchmarks" / "results"
@@ -157,16 +158,17 @@ def case_demo(patch):
         return {"force_N": summary["F_max_N"], "n_nodes": summary.get("n_nodes"), "s": round(time.perf_counter() - t, 1)}
 
 
-def write(results: dict, command: str) -> None:
-    meta = {"command": command, "date_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "load_average": [round(x, 2) for x in os.getloadavg()], "cpus": os.cpu_count()}
+def write(results: dict, run: Run) -> None:
+    meta = run.fields()
+    command = meta["command"]
     OUT.mkdir(parents=True, exist_ok=True)
     path = OUT / "bench_patch.json"
     old = json.loads(path.read_text())["cases"] if path.exists() else {}
     old.update(results)
     path.write_text(json.dumps({"meta": meta, "cases": old}, indent=1))
     lines = ["# Patch of the projected pressure: 1 × 1 × 3 (held: own) against 2 × 2 × 3 (held: patch)", "", f"Command: `{command}` "
-             f"({meta['date_utc']}, load average {meta['load_average']})", "",
+             f"({meta['utc']}, commit {meta['commit'][:10]}, load average {meta['load_average']['before'][0]} before, "
+             f"{meta['load_average']['after'][0]} after)", "",
              "| case | 1 × 1 × 3 | 2 × 2 × 3 | 2 × 2 × 3 vs 1 × 1 × 3 |", "|---|---|---|---|"]
     for name in CASES:
         if name not in old:
@@ -194,11 +196,13 @@ def main(argv=None):
     args = p.parse_args(argv)
     results = {}
     for name in args.cases:
+        record = Run(defaults=False, command=".venv/bin/python benchmarks/bench_patch.py --cases " + name)
         results[name] = {}
         for label, patch in PATCHES.items():
             results[name][label] = globals()[f"case_{name}"](patch)
             print(name, label, json.dumps(results[name][label])[:300], flush=True)
-        write({name: results[name]}, "python benchmarks/bench_patch.py " + " ".join(argv))
+        results[name].update(record.fields())
+        write({name: results[name]}, record)
     return 0
 
 

@@ -21,7 +21,7 @@ import argparse
 import json
 import os
 import pathlib
-import platform
+import shlex
 import shutil
 import subprocess
 import sys
@@ -32,6 +32,8 @@ import yaml
 
 HERE = pathlib.Path(__file__).parent
 OUT = HERE / "results"
+sys.path.insert(0, str(HERE.resolve()))
+from _record import Run  # noqa: E402
 
 
 def _rank_main(rss_dir: str, argv: list[str]) -> None:
@@ -65,8 +67,10 @@ def run_case(tmp: pathlib.Path, model: pathlib.Path, cfg: dict, backend: str, ra
     if backend == "petsc":
         cmd = [shutil.which("mpiexec"), "--oversubscribe", "-n", str(ranks)] + cmd
     env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMP_NUM_THREADS="1")
+    record = Run(defaults=False, command=shlex.join(cmd))
     subprocess.run(cmd, check=True, env=env)
     res = load_results(out)
+    per_rank = [float((rss / f"rss_{r}.txt").read_text()) for r in range(ranks)]
     info = res.info
     return {
         "backend": backend, "ranks": ranks, "status": res.status,
@@ -78,7 +82,9 @@ def run_case(tmp: pathlib.Path, model: pathlib.Path, cfg: dict, backend: str, ra
         "krylov_iterations_per_newton": round(float(np.mean(info["linear_iterations"])), 1),
         "preconditioner_builds": int(info.get("preconditioner_builds", 0)),
         "force_z_max_N": [float(f) for f in res.force("z_max")],
-        "peak_rss_GB_per_rank": [float((rss / f"rss_{r}.txt").read_text()) for r in range(ranks)],
+        "peak_rss_GB_per_rank": per_rank,
+        # the ranks together (each its own process; the command is the case's, with its temporary files)
+        **record.fields(peak_rss_GB=round(sum(per_rank), 2)),
     }
 
 
@@ -88,8 +94,8 @@ def write_tables(size: str, n_nodes: int, cases: list[dict], command: str) -> No
     for c in cases:
         c["max_force_deviation_vs_serial"] = float(np.max(np.abs(np.asarray(c["force_z_max_N"]) - f_ref))
                                                    / np.max(np.abs(f_ref)))
-    meta = {"command": command, "size": size, "nodes": n_nodes, "machine": platform.platform(),
-            "cpus": os.cpu_count(), "load_average_at_start": os.getloadavg()}
+    meta = {"command": command, "size": size, "nodes": n_nodes, "machine": cases[0]["machine"],
+            "cpus": cases[0]["machine"]["cpus"], "load_average_at_start": cases[0]["load_average"]["before"]}
     (OUT / "bench_petsc.json").write_text(json.dumps({"meta": meta, "cases": cases}, indent=1))
     lines = [f"# bench_petsc: activation sweep of the SYNTHETIC leg ({size}, {n_nodes:,} nodes), petsc vs {cases[0]['backend']} (serial)", "",
              f"Command: `{command}` (10 load steps unless --steps; Newton residual tolerance 1e-2)", "",
@@ -132,7 +138,7 @@ def main() -> None:
         for p in args.ranks:
             cases.append(run_case(tmp, tmp / "model.h5", cfg, "petsc", p))
             print(json.dumps(cases[-1]), flush=True)
-    write_tables(args.size, model.n_nodes, cases, "python benchmarks/bench_petsc.py " + " ".join(sys.argv[1:]))
+    write_tables(args.size, model.n_nodes, cases, ".venv/bin/python benchmarks/bench_petsc.py " + " ".join(sys.argv[1:]))
 
 
 if __name__ == "__main__":

@@ -26,8 +26,9 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]  # this checkout's package and test helpers
+sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "benchmarks")]  # the package, test helpers, _record
 
+from _record import Run  # noqa: E402
 from test_mixed_solver import _system  # noqa: E402
 
 from pixmuscle.errors import SolverError  # noqa: E402
@@ -71,6 +72,7 @@ def main() -> None:
                        + [f"'{a}'" for a in sys.argv[1:]])
     from pixmuscle.mechanics.linsolve import multigrid
 
+    record = Run(defaults=not options, command=command)
     amg = "BoomerAMG" if multigrid.hypre_available() else "GAMG"
     lines = [f"# petsc_mixed: first Newton system, {size} rank(s), multigrid {amg}, petsc_options {options}", "",
              f"`{command}`", "",
@@ -85,7 +87,12 @@ def main() -> None:
                     print(lines[-1], flush=True)
     if rank == 0 and not options:  # the default options' table is the record
         out = ROOT / "benchmarks" / "results" / f"bench_petsc_mixed_{size}rank.md"
+        fields = record.fields()  # this rank's tree; the ranks run alike
+        lines += ["", f"Made at commit {fields['commit'][:10]}, {fields['utc']}, load average "
+                      f"{fields['load_average']['before'][0]} before, {fields['load_average']['after'][0]} after, "
+                      f"peak memory {fields['peak_rss_GB']} GB per rank."]
         out.write_text("\n".join(lines) + "\n")
+        out.with_suffix(".json").write_text(json.dumps({**fields, "table": lines}, indent=1))
 
 
 if __name__ == "__main__":

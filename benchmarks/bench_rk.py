@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
-import platform
 import resource
 import sys
 import time
@@ -23,6 +22,9 @@ import time
 import numpy as np
 
 from pixmuscle.rk import shape_functions
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from _record import Run  # noqa: E402
 
 H = 0.078125  # cm, one pixel (paper Fig. 7 caption)
 TARGET_S = 15.0
@@ -44,6 +46,7 @@ def main(argv=None):
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("benchmarks/results"))
     args = parser.parse_args(argv)
 
+    record = Run(defaults=True)
     nodes, n_pixels = pixel_cloud()
     support = np.array([1.65 * H, 1.65 * H, 1.65 * 3.0 * H])
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -74,7 +77,7 @@ def main(argv=None):
         "meets_target": bool(wall <= TARGET_S and peak_kb / 1024**2 <= TARGET_GB),
         "python": sys.version.split()[0],
         "numpy": np.__version__,
-        "machine": platform.platform(),
+        **record.fields(),
     }
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "bench_rk.json").write_text(json.dumps(result, indent=2) + "\n")

@@ -17,13 +17,15 @@ Run: ``python benchmarks/bench_segmentation.py``; writes
 from __future__ import annotations
 
 import json
-import os
-import platform
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 from scipy import ndimage as ndi
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _record import Run  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "results"
 
@@ -149,15 +151,13 @@ def bench_pipeline(ph, d, covered, repeats=2):
 
 def main():
     t0 = time.perf_counter()
-    load0 = os.getloadavg()[0]
+    record = Run(defaults=True)
+    load0 = record.load_before[0]
     cam = bench_camera()
     ph, d, covered = leg_slice()
     mp = bench_multiphase(ph, d, covered)
     pipe = bench_pipeline(ph, d, covered)
     result = {
-        "machine": {"python": platform.python_version(), "cpus": os.cpu_count(),
-                    "processor": platform.processor() or platform.machine(),
-                    "load_average_1min_at_start": load0},
         "chan_vese_camera": cam,
         "multiphase_256": mp,
         "segment_volume_256": pipe,
@@ -166,6 +166,7 @@ def main():
                 "multiphase_seeded": mp["seed_init_s"] <= 2.0,
                 "multiphase_300_sweeps": mp["fixed_300_sweeps_s"] <= 2.0},
         "wall_s": time.perf_counter() - t0,
+        **record.fields(),
     }
     OUT.mkdir(exist_ok=True)
     (OUT / "bench_segmentation.json").write_text(json.dumps(result, indent=2) + "\n")

@@ -11,7 +11,9 @@ wide on those pixels with the node counts of ``20k`` and ``75k``.
 
 Solve: α 0 → 0.95 in 10 load steps, both ends fixed, bone surfaces fixed in-plane, cubic
 kernel, linear basis, a/h = 1.65, every other setting at its default. Each case runs in its own
-process, so its peak RSS is its own.
+process, so its peak RSS (:func:`_record.peak_rss_GB`, BoomerAMG workers included) is its own.
+Every row carries the fields of :mod:`_record` (command, commit, utc, machine, load average
+before and after, defaults, peak_rss_GB).
 
 Records per case: RK + SCNI build, pattern/assembly time per Newton iteration, linear set-up and
 solve time per Newton iteration, CG iterations, Newton iterations per step, whole sweep, peak RSS,
@@ -47,12 +49,14 @@ import json
 import os
 import pathlib
 import platform
-import resource
 import subprocess
 import sys
 import time
 
 import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from _record import Run, peak_rss_GB  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results"
 SPACING = (0.15625, 0.15625, 0.5)
@@ -230,12 +234,8 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
 
 
 def peak_rss_gb() -> float:
-    """Peak resident memory of this process, GB, plus the peaks of the MPI workers it spawned for
-    BoomerAMG (``amg_processes``; the sum of the peaks bounds the peak of the sum)."""
-    from pixmuscle.mechanics.linsolve.amg_processes import workers_peak_rss_kb
-
-    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss + sum(workers_peak_rss_kb())
-    return round(kb / 1024**2, 2)
+    """Peak resident memory of this process tree, GB, BoomerAMG workers included (:func:`_record.peak_rss_GB`)."""
+    return peak_rss_GB()
 
 
 def _checkpoint_files(stem: pathlib.Path) -> tuple[pathlib.Path, pathlib.Path]:
@@ -310,7 +310,7 @@ def probe(size: str, penalty: float | None) -> dict:
         t = time.perf_counter()
         _, its, status = pcg(A, r, M, tol, 3000)
         out[f"cg_{tol:g}"] = {"iterations": its, "status": status, "s": round(time.perf_counter() - t, 1)}
-    out["peak_rss_GB"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2)
+    out["peak_rss_GB"] = peak_rss_gb()
     return out
 
 
@@ -425,7 +425,7 @@ def conditioning(size: str, penalty: float | None, scales=(0.1, 1.0, 10.0), rtol
                     r["default"] = False
             record = {"size": size, "nodes": model.n_nodes, "rtol": rtol, "penalty_beta": beta, "rows": previous + rows,
                       "load_avg": os.getloadavg()[0],
-                      "peak_rss_GB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2)}
+                      "peak_rss_GB": peak_rss_gb()}
             if on_row is not None:
                 on_row(record)
     return record
@@ -504,7 +504,7 @@ def infsup(size: str, penalty: float | None, patch=(1, 1, 3), held: str = "press
     out["modes_below"] = counts
     out["modes_below_0.01"] = counts.get("0.01")
     out["inertia_s"] = round(time.perf_counter() - t0, 1)
-    out["peak_rss_GB"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2)
+    out["peak_rss_GB"] = peak_rss_gb()
     return out
 
 
@@ -570,7 +570,7 @@ def multigrid(size: str, penalty: float | None, amg: str) -> dict:
     out["mixed_solve_s"] = round(time.perf_counter() - t, 1)
     out.update(mixed_fgmres_iterations=solver.info["iterations"],
                mixed_s_per_iteration=round(out["mixed_solve_s"] / solver.info["iterations"], 3), threads=thread_count(),
-               peak_rss_GB=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2))
+               peak_rss_GB=peak_rss_gb())
     return out
 
 
@@ -595,7 +595,7 @@ def probe_direct(size: str, penalty: float | None) -> dict:
     f = PardisoLDLT(pat)
     out.update(analysis_s=round(f.info["analysis_s"], 1), factor_nnz=f.info["factor_nnz"],
                factor_GB=round(8 * f.info["factor_nnz"] / 1e9, 2), factor_gflop=float(f.iparm[18]) / 1e3,
-               peak_rss_GB=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2))
+               peak_rss_GB=peak_rss_gb())
     return out
 
 
@@ -629,7 +629,7 @@ def start_inertia(size: str, penalty: float | None, alphas=(0.0, 0.095)) -> dict
         out["rows"].append({"alpha": alpha, "positive": pos, "negative": neg,
                             "perturbed_pivots": factor.info["perturbed_pivots"], "factor_s": round(time.perf_counter() - t, 1)})
         print(json.dumps(out["rows"][-1]), flush=True)
-    out.update(load_avg=os.getloadavg()[0], peak_rss_GB=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2))
+    out.update(load_avg=os.getloadavg()[0], peak_rss_GB=peak_rss_gb())
     return out
 
 
@@ -675,10 +675,12 @@ def dev_text(x: float | None) -> str:
     return "—" if x is None else f"{x:.1e}"
 
 
-def write_tables(cases, command: str):
-    meta = {"python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count(),
-            "platform": platform.platform(), "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-            "command": command}
+def write_tables(cases, command: str, meta: dict | None = None):
+    """Write bench_solve.json and .md; ``meta`` (the last run's: machine, date, command) is made now unless
+    given (``--tables`` keeps the record's)."""
+    meta = meta or {"python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count(),
+                    "platform": platform.platform(), "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                    "command": command}
     exps = growth_exponents(cases)
     (OUT / "bench_solve.json").write_text(json.dumps({"meta": meta, "cases": cases, "growth_exponents": exps}, indent=1))
     lines = ["# bench_solve: isometric activation sweep of the SYNTHETIC leg (paper Example 2 set-up)", "",
@@ -759,10 +761,12 @@ def main(argv=None):
     p.add_argument("--variants", nargs="+", default=list(CONDITIONING_VARIANTS),
                    help="--conditioning: VOLUMETRIC[:PATCH]:BACKEND[:HELD], e.g. projected:2,2,3:mixed_amg:patch (HELD: volumetric.held)")
     args = p.parse_args(argv)
+    command = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
+    run = Run(defaults=False, command=command)
     if args.infsup:  # one row per (size, patch, held) in bench_solve_infsup.json
         patch = tuple(int(x) for x in args.patch.split(","))
         res = infsup(args.infsup, args.penalty, patch=patch, held=args.held, thresholds=tuple(args.thresholds))
-        res.update(command=".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv), load_avg=os.getloadavg()[0])
+        res.update(run.fields())
         path = OUT / "bench_solve_infsup.json"
         rows = json.loads(path.read_text())["rows"] if path.exists() else []
         rows = [r for r in rows if (r["size"], r["patch"], r["held_single_patches_in"]) != (res["size"], res["patch"], res["held_single_patches_in"])]
@@ -771,8 +775,7 @@ def main(argv=None):
         return 0
     if args.multigrid:  # one row per (size, amg) in bench_solve_multigrid.json
         res = multigrid(args.multigrid, args.penalty, args.amg)
-        res.update(command=".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv),
-                   load_average=[round(x, 2) for x in os.getloadavg()])
+        res.update(run.fields())
         path = OUT / "bench_solve_multigrid.json"
         rows = json.loads(path.read_text())["rows"] if path.exists() else []
         rows = [r for r in rows if (r["size"], r["amg"]) != (res["size"], res["amg"])]
@@ -780,8 +783,6 @@ def main(argv=None):
         print(json.dumps(res, indent=1))
         return 0
     if args.conditioning:
-        command = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
-
         path = OUT / f"bench_solve_conditioning_{args.conditioning}.json"
         previous = []
         if args.append and path.exists():  # earlier rows stay, each with the command and load it ran under
@@ -789,10 +790,14 @@ def main(argv=None):
             previous = [{"command": old.get("command"), "load_avg": old.get("load_avg"),
                          "penalty_beta": old.get("penalty_beta"), **r} for r in old["rows"]]
 
+        started = {"run": run}
+
         def keep(record):
             for r in record["rows"]:
-                r.setdefault("command", command)
-                r.setdefault("load_avg", record["load_avg"])
+                if "commit" not in r and "load_avg" not in r:  # a row of this run: its record fields, then
+                    # the next row's load average starts here
+                    r.update(started["run"].fields(defaults=r["default"] and r["bulk_scale"] == 1))
+                    started["run"] = Run(command=command)
             path.write_text(json.dumps({**record, "command": command}, indent=1))
 
         conditioning(args.conditioning, args.penalty, scales=tuple(args.scales), variants=args.variants, on_row=keep,
@@ -802,7 +807,7 @@ def main(argv=None):
                            (args.inertia, start_inertia, "bench_solve_inertia")):
         if size:
             res = fn(size, args.penalty)
-            res["command"] = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
+            res.update(run.fields())
             OUT.mkdir(parents=True, exist_ok=True)
             (OUT / f"{stem}_{size}.json").write_text(json.dumps(res, indent=1))
             print(json.dumps(res, indent=1))
@@ -822,10 +827,9 @@ def main(argv=None):
         res.update(case=args.one, label=case_label(backend, tol, eta))
         print("RESULT " + json.dumps(res), flush=True)
         return 0
-    command = ".venv/bin/python benchmarks/bench_solve.py " + " ".join(argv)
     if args.tables:
         old = json.loads((OUT / "bench_solve.json").read_text())
-        write_tables(old["cases"], old["meta"]["command"])
+        write_tables(old["cases"], old["meta"]["command"], old["meta"])
         return 0
     OUT.mkdir(parents=True, exist_ok=True)
     cases = []
@@ -847,20 +851,20 @@ def main(argv=None):
         if args.checkpoint:
             cmd += ["--checkpoint", args.checkpoint]
         t0 = time.perf_counter()
-        load0 = os.getloadavg()
+        # the command of this case alone; 1, 5 and 15 min load averages before and after it (a timing is a
+        # record only on a quiet machine); its peak memory is the child's own (BoomerAMG workers included)
+        case_run = Run(command=" ".join([".venv/bin/python benchmarks/bench_solve.py --cases", case]
+                                        + [f"--{k} {v}" for k, v in (("steps", args.steps), ("alpha", args.alpha))]
+                                        + ([f"--penalty {args.penalty}"] if args.penalty is not None else [])))
         proc = subprocess.run(cmd, capture_output=True, text=True)
         got = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
         if got:
             cases.append(json.loads(got[-1][7:]))
-            # 1, 5 and 15 min load averages before and after the case: a timing is a record only on a quiet machine
-            cases[-1]["load_average"] = {"start": [round(x, 2) for x in load0], "end": [round(x, 2) for x in os.getloadavg()]}
-            cases[-1]["command"] = " ".join([".venv/bin/python benchmarks/bench_solve.py --cases", case]
-                                            + [f"--{k} {v}" for k, v in (("steps", args.steps), ("alpha", args.alpha))]
-                                            + ([f"--penalty {args.penalty}"] if args.penalty is not None else []))
+            cases[-1].update(case_run.fields(defaults=cases[-1]["defaults"], peak_rss_GB=cases[-1]["peak_rss_GB"]))
         else:
             size, backend, tol, eta = parse_case(case)
             cases.append({"size": size, "backend": backend, "case": case, "label": case_label(backend, tol, eta), "error": (proc.stderr.strip().splitlines() or ["?"])[-1],
-                          "wall_s": round(time.perf_counter() - t0, 1)})
+                          "wall_s": round(time.perf_counter() - t0, 1), **case_run.fields(defaults=False)})
         print(json.dumps(cases[-1])[:600], flush=True)
         write_tables(cases, command)
     return 0

@@ -32,13 +32,13 @@ import datetime
 import json
 import os
 import pathlib
-import platform
 import sys
 import time
 
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
+from _record import Run, command_line  # noqa: E402
 from bench_solve import SIZES, leg_case  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results"
@@ -67,10 +67,12 @@ def solve_case(size: str, tol: tuple[float, float], steps: int, work: pathlib.Pa
     if path.exists():
         with np.load(path, allow_pickle=False) as f:
             return {k: f[k] for k in f.files}
+    from pixmuscle.mechanics.config import NewtonConfig
     from pixmuscle.mechanics.solve import solve
 
     model, cfg = leg_case(size, None, steps=steps, activation={"from": 0.0, "to": 0.95},
                           newton={"residual_tol": tol[0], "energy_tol": tol[1]})
+    record = Run(defaults=steps == 10 and tol == _tol(NewtonConfig().residual_tol, NewtonConfig().energy_tol))
     load0 = os.getloadavg()
     t = time.perf_counter()
     res = solve(model, cfg)
@@ -81,7 +83,7 @@ def solve_case(size: str, tol: tuple[float, float], steps: int, work: pathlib.Pa
            "linear_iterations": np.asarray(res.info.get("linear_iterations", []), float),
            "sweep_s": np.float64(wall), "nodes": np.int64(model.n_nodes),
            "load": np.asarray([*load0, *os.getloadavg()]), "backend": np.str_(res.info.get("linear_solver", "")),
-           "status": np.str_(res.status)}
+           "status": np.str_(res.status), "record": np.str_(json.dumps(record.fields()))}
     work.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
     np.savez(tmp, **out)
@@ -120,13 +122,13 @@ def run(size: str, tols: list[tuple[float, float]], steps: int, work: pathlib.Pa
                      "newton_iterations_total": int(np.sum(c["iterations"])), "cutbacks": int(np.sum(c["cutbacks"])),
                      "krylov_iterations_total": int(np.sum(c["linear_iterations"])) or None,
                      "sweep_s": round(float(c["sweep_s"]), 1), "load_avg_before_after": np.round(c["load"], 2).tolist(),
-                     "force_z_max_N": float(c["forces"][-1, 1, 2]), **compare(ref, c)})
+                     "force_z_max_N": float(c["forces"][-1, 1, 2]), **compare(ref, c),
+                     **(json.loads(str(c["record"])) if "record" in c else {})})
     return {"size": size, "steps": steps, "backend": str(ref["backend"]), "rows": rows}
 
 
 def write(rec: dict, command: str) -> None:
-    rec = {**rec, "command": command, "date": datetime.date.today().isoformat(), "machine": platform.node(),
-           "cpus": os.cpu_count()}
+    rec = {**rec, "command": command, "date": datetime.date.today().isoformat(), "cpus": os.cpu_count()}
     OUT.mkdir(exist_ok=True)
     stem = OUT / f"bench_tolerance_{rec['size']}"
     stem.with_suffix(".json").write_text(json.dumps(rec, indent=1) + "\n")
@@ -156,7 +158,7 @@ def main(argv=None):
                    help="where each sweep's fields are kept, so an interrupted run resumes")
     args = p.parse_args(argv)
     rec = run(args.size, args.tols, args.steps, args.work)
-    write(rec, " ".join([".venv/bin/python benchmarks/bench_tolerance.py", *argv]))
+    write(rec, command_line(argv))
     return 0
 
 

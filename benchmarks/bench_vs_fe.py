@@ -76,12 +76,14 @@ import json
 import os
 import pathlib
 import platform
-import resource
 import subprocess
 import sys
 import time
 
 import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from _record import Run, peak_rss_GB  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results"
 STEM = "bench_vs_fe"
@@ -190,7 +192,8 @@ def voxel_hex8_mesh(mask: np.ndarray, affine: np.ndarray, refine=(1, 1, 1), with
 
 
 def peak_rss_gb() -> float:
-    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 3)
+    """Peak resident memory of this case's process tree, GB (:func:`_record.peak_rss_GB`)."""
+    return peak_rss_GB()
 
 
 def run_pixmuscle(method: str, steps: int) -> dict:
@@ -727,7 +730,8 @@ def leg_lines(cases: list[dict], meta: dict) -> list[str]:
             lines.append(f"| {c['case']} | failed: {c['error'][:80]} | | | | | | | | | | |")
             continue
         load = c.get("load_average", {})
-        load = f"{load['start'][0]:.1f} → {load['end'][0]:.1f}" if load else "—"
+        load = (f"{load.get('start', load.get('before'))[0]:.1f} → {load.get('end', load.get('after'))[0]:.1f}"
+                if load else "—")
         lines.append(f"| {c['case']} | {c['method']} | {c['nodes']} | {c['dofs']} | {c.get('elements') or '—'} | "
                      f"{c['force_N']:.4f} | {pct(c.get('diff_vs_pixmuscle'))} | "
                      f"{c['newton_iterations_per_step']} | {c['wall_s']} | {c['peak_rss_GB']} | {load} | "
@@ -827,11 +831,10 @@ def main(argv=None):
              and (args.append or is_leg(c.get("case", "")) not in measured)]
     for spec in args.cases:
         print(f"== {spec}", flush=True)
-        load0 = os.getloadavg()
+        case_run = Run(defaults=False)
         res = in_subprocess(spec, args.steps, args.threads)
-        common = dict(case=spec, threads=args.threads, date_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                      platform=run["platform"], cpus=run["cpus"], note=SHARED_NOTE,
-                      load_average={"start": [round(x, 2) for x in load0], "end": [round(x, 2) for x in os.getloadavg()]})
+        common = dict(case=spec, threads=args.threads, date_utc=case_run.utc, platform=run["platform"], cpus=run["cpus"],
+                      note=SHARED_NOTE)
         if is_leg(spec):
             method, arg = parse_case(spec)
             res.update(common, size=arg[0], steps=LEG_STEPS, alpha_to=LEG_ALPHA,
@@ -842,6 +845,7 @@ def main(argv=None):
             res.update(common, voxel_size_cm=list(H), steps=args.steps,
                        command=f".venv/bin/python benchmarks/bench_vs_fe.py --cases {spec} --steps {args.steps} "
                                f"--threads {args.threads} --reuse-reference --append")
+        res.update(case_run.fields(command=res["command"], peak_rss_GB=res.get("peak_rss_GB")))
         cases.append(res)
         print(json.dumps(res)[:600], flush=True)
         write_results(with_errors(cases, ref), ref, meta, meta_leg)

@@ -24,10 +24,11 @@ from .outdir import prepare_output_dir
 #: bytes per node and stored state of a results file: u, d (3 each), Cauchy stress (6), max principal (1), float64
 RESULT_BYTES_PER_NODE_STEP = 13 * 8
 #: the rough cost of one load step, s: ``a n^p + b n²`` with n = n_nodes / :data:`NODES_REF` and
-#: ``STEP_SECONDS = (a, p, b)``, a least-squares fit in log to the whole sweeps at the defaults on 2 cores
-#: (benchmarks/results/bench_solve.json, ``"defaults": true``: 5,460 to 295,073 nodes, 39 s to 30 min
-#: for 10 steps; each within 6 % of the fit). The n² term is the growth of the Krylov iterations
-STEP_SECONDS = (3.792, 0.838, 0.025)
+#: ``STEP_SECONDS = (a, p, b)``, a least-squares fit in log to the whole sweeps at today's defaults on 2 cores
+#: (benchmarks/results/bench_solve.json, ``"defaults": true`` and not superseded; refit and checked with
+#: ``benchmarks/fit_time_estimate.py``). The n² term is the growth of the Krylov iterations
+#: with the model's size on top of the work per iteration, which grows about like n.
+STEP_SECONDS = (3.086, 0.959, 0.012)
 NODES_REF = 5460
 
 

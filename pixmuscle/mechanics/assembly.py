@@ -199,7 +199,7 @@ def local_rows(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, own: np.n
     missing axis are then matched in the least-squares sense). Adding the cut entries to the own
     node alone keeps only the sums: on the first Newton system of the leg at 0.078-cm pixels that
     stand-in's V-cycle needed 46 and 54 FGMRES iterations at 21k and 74k nodes, against 39 and 42
-    with the moments kept (docs/performance.md, "The stand-in keeps first moments").
+    with the moments kept (the git history of docs/performance.md).
 
     ``tol`` also cuts the entries smaller than ``tol`` times the row's largest (the same way),
     which thins the pattern: on the ±2-voxel pattern of the leg 0.15 leaves ~125 of ~335 non-zeros

@@ -31,8 +31,7 @@ active fibre stress can make it indefinite along the soft lateral mode of a clam
 then overshot that mode and Newton wandered for ~10 iterations, which is why the converged
 tangent used to start every increment; with the energy line search and this fallback the
 current tangent takes fewer iterations on the clamped block, and on the 21k leg the iterative
-solvers' preconditioner is then built for the activated state (docs/performance.md, "Newton
-convergence").
+solvers' preconditioner is then built for the activated state (the git history of docs/performance.md).
 
 Pressure between iterations (projected volumetric energy, ``pressure_update``). The condensed
 tangent's geometric term holds the patch pressure. ``exact`` takes K̄(θ − 1) of the new state;

@@ -50,7 +50,7 @@ _LOG = logging.getLogger(__name__)
 # voxels apart) that are at least LOCAL_TOL times its row's largest: ~125 instead of ~335 non-zeros
 # per row (the 335-per-row stand-in ran the 295k sweep out of memory); on the 0.078-cm leg at 21k
 # nodes 39 FGMRES iterations on the first Newton system, 33 at 0.10 with 316 non-zeros per row,
-# 43 at 0.25 with 129 (docs/performance.md, "The stand-in keeps first moments")
+# 43 at 0.25 with 129 (the git history of docs/performance.md)
 LOCAL_RADIUS = 1
 LOCAL_TOL = 0.15
 
@@ -427,7 +427,7 @@ class MechanicalSystem:
         (:func:`.assembly.local_rows`), not by leaving out the far node pairs of the product: each
         term stays positive semi-definite, so the stand-in is positive definite wherever the
         tangent is. (Left-out pairs gave 41 negative pivots on the 21k leg at 0.078-cm pixels, and
-        FGMRES iterations that grew with the model: docs/performance.md, "Multigrid".)
+        FGMRES iterations that grew with the model: the git history of docs/performance.md.)
         docs/linsolve-research.md §2(c) explains the filter. With the
         projected volumetric energy the stand-in carries each node's own volumetric stiffness
         K_L a_L⊗a_L instead of the patch terms, whose node pairs reach beyond the filter (on the

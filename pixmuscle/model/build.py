@@ -317,6 +317,124 @@ def _node_fibers(ijk, is_muscle, muscle_id, names, label_of_node, rules, fibers,
     return vec
 
 
+def _checked_inputs(labels, affine_cm, fibers, fiber_fallback, masks, muscle_ids):
+    """The inputs of :func:`model_from_labels` as arrays, their shapes checked against the label grid.
+
+    Returns
+    -------
+    labels, affine (4 × 4, cm), fibers or None, masks (dict of arrays), muscle_ids or None
+    """
+    labels = _integer_labels(labels)
+    shape0 = labels.shape
+    affine, _, _, _ = grid_frame(affine_cm)
+    if fiber_fallback not in ("error", "muscle_mean"):
+        raise InputError(f"fiber_fallback: expected 'error' or 'muscle_mean', got {fiber_fallback!r}")
+    if fibers is not None:
+        fibers = np.asarray(fibers)
+        if fibers.shape != (*shape0, 3):
+            raise InputError(f"fibers: expected shape {(*shape0, 3)} (the label grid × 3), got {fibers.shape}")
+    masks = dict(masks or {})
+    for name, m in masks.items():
+        _check_set_name(name)
+        masks[name] = np.asarray(m)
+        if masks[name].shape != shape0:
+            raise InputError(f"mask '{name}': expected shape {shape0} (the label grid), got {masks[name].shape}")
+    if muscle_ids is not None:
+        muscle_ids = np.asarray(muscle_ids)
+        if muscle_ids.shape != shape0 or muscle_ids.dtype.kind not in "iu":
+            raise InputError(f"muscle_id: expected an integer volume of shape {shape0}, got {muscle_ids.dtype} {muscle_ids.shape}")
+    return labels, affine, fibers, masks, muscle_ids
+
+
+def _canonical_grid(labels, affine, fibers, masks, muscle_ids):
+    """The volumes reordered to the closest canonical (RAS+) grid (unchanged when already canonical),
+    and that grid's frame ``(affine, spacing, origin, rotation)`` (:func:`grid_frame`); warns of an
+    oblique scan and of voxels that look like mm."""
+    ornt, affine = canonical_reorientation(affine, labels.shape)
+    if not _is_identity_ornt(ornt):
+        from nibabel.orientations import apply_orientation
+
+        _LOG.info("labels reordered to the closest canonical (RAS+) orientation")
+        labels = apply_orientation(labels, ornt)
+        fibers = apply_orientation(fibers, ornt) if fibers is not None else None
+        masks = {k: apply_orientation(m, ornt) for k, m in masks.items()}
+        muscle_ids = apply_orientation(muscle_ids, ornt) if muscle_ids is not None else None
+    affine, spacing, origin, rotation = grid_frame(affine)
+    if np.abs(rotation - np.eye(3)).max() > OBLIQUE_TOL:
+        _LOG.warning("oblique scan: the voxel axes are rotated by up to %.2f° from the scanner axes; the model is "
+                     "built in the grid-aligned frame and the rotation is kept in grid/rotation",
+                     np.degrees(np.arccos(np.clip(np.diag(rotation).min(), -1, 1))))
+    if (spacing > 2.0).any():
+        _LOG.warning("voxel size %s cm looks large: is the affine in mm instead of cm?", np.round(spacing, 4).tolist())
+    return labels, fibers, masks, muscle_ids, (affine, spacing, origin, rotation)
+
+
+def _tissue_volume(labels, tissue_map):
+    """The tissue code of every voxel, from :func:`parse_tissue_map`'s rules.
+
+    Returns
+    -------
+    rules : dict of int → rule
+    keys : (L,) int64
+        The mapped label values, sorted.
+    tissue_vol : int8 array of labels' shape
+
+    Raises
+    ------
+    InputError
+        Label values that the map does not name.
+    """
+    rules = parse_tissue_map(tissue_map)
+    vals, counts = _present_labels(labels)
+    unknown = [(int(v), int(c)) for v, c in zip(vals, counts, strict=True) if int(v) not in rules]
+    if unknown:
+        listed = ", ".join(f"{v} ({c} voxels)" for v, c in unknown[:10]) + (" ..." if len(unknown) > 10 else "")
+        raise InputError(f"labels: values {listed} are not in the tissue map (which names {sorted(rules)}); "
+                         "add them to build_model.tissue_map, e.g. {5: fat}")
+    keys = np.array(sorted(rules), dtype=np.int64)
+    key_tissue = np.array([rules[k].tissue for k in keys], dtype=np.int8)
+    return rules, keys, key_tissue[np.searchsorted(keys, labels)]
+
+
+def _muscle_identity(label_of_node, is_muscle, ijk, affine, rules, keys, tissue_map, node_muscle_ids, muscle_names):
+    """Muscle names and each node's muscle id (0: not muscle), from a muscle_id volume's values at
+    the nodes (``node_muscle_ids``) or else from the tissue map's muscle labels.
+
+    Returns
+    -------
+    names : list of str
+    mid : (N,) int64
+    label_of_node : (N,) int or None
+        The nodes' label values, None with a muscle_id volume (per-label fibres are not allowed then).
+    """
+    if node_muscle_ids is not None:
+        if tissue_map is not None and any(isinstance(v, Mapping) for v in tissue_map.values()):
+            raise InputError("tissue_map: with a separate muscle_id volume (segmentation.h5) the tissue map may only "
+                             "name tissues; muscles and their names come from /muscle_id and /muscle_names")
+        names = [str(s) for s in (muscle_names or [])]
+        mid = node_muscle_ids.astype(np.int64)
+        if mid.size and (mid.min() < 0 or mid.max() > len(names)):
+            raise InputError(f"muscle_id: values must be 0..{len(names)} (the number of muscle names), "
+                             f"got {mid.min()}..{mid.max()}")
+        mid[~is_muscle] = 0
+        unassigned = is_muscle & (mid == 0)
+        if unassigned.any():
+            names.append("unassigned")
+            mid[unassigned] = len(names)
+            _LOG.warning("%d muscle voxels have muscle_id 0; they form an extra muscle 'unassigned' (e.g. %s)",
+                         int(unassigned.sum()), _describe_nodes(unassigned, ijk, affine, 1))
+        label_of_node = None                              # per-label fibres are not allowed here
+    else:
+        names = list(dict.fromkeys(r.muscle for r in rules.values() if r.tissue == MUSCLE))
+        key_mid = np.array([names.index(rules[k].muscle) + 1 if rules[k].tissue == MUSCLE else 0 for k in keys])
+        mid = key_mid[np.searchsorted(keys, label_of_node)]
+    present = set(np.unique(mid[is_muscle]).tolist())
+    absent = [nm for i, nm in enumerate(names, 1) if i not in present]
+    if absent:
+        _LOG.warning("muscle(s) %s have no voxel in the labels (kept with their id, no nodes)", ", ".join(absent))
+    return names, mid, label_of_node
+
+
 def model_from_labels(
     labels,
     affine_cm,
@@ -374,56 +492,12 @@ def model_from_labels(
         Unmapped label values, shape mismatches, no node voxels, or muscle nodes without a fibre
         (``fiber_fallback="error"``); messages say how many and where.
     """
-    labels = _integer_labels(labels)
-    shape0 = labels.shape
-    affine, _, _, _ = grid_frame(affine_cm)
-    if fiber_fallback not in ("error", "muscle_mean"):
-        raise InputError(f"fiber_fallback: expected 'error' or 'muscle_mean', got {fiber_fallback!r}")
-    if fibers is not None:
-        fibers = np.asarray(fibers)
-        if fibers.shape != (*shape0, 3):
-            raise InputError(f"fibers: expected shape {(*shape0, 3)} (the label grid × 3), got {fibers.shape}")
-    masks = dict(masks or {})
-    for name, m in masks.items():
-        _check_set_name(name)
-        masks[name] = np.asarray(m)
-        if masks[name].shape != shape0:
-            raise InputError(f"mask '{name}': expected shape {shape0} (the label grid), got {masks[name].shape}")
-    if muscle_ids is not None:
-        muscle_ids = np.asarray(muscle_ids)
-        if muscle_ids.shape != shape0 or muscle_ids.dtype.kind not in "iu":
-            raise InputError(f"muscle_id: expected an integer volume of shape {shape0}, got {muscle_ids.dtype} {muscle_ids.shape}")
-
-    # reorder voxels to the canonical grid (no-op when already canonical)
-    ornt, affine = canonical_reorientation(affine, shape0)
-    if not _is_identity_ornt(ornt):
-        from nibabel.orientations import apply_orientation
-
-        _LOG.info("labels reordered to the closest canonical (RAS+) orientation")
-        labels = apply_orientation(labels, ornt)
-        fibers = apply_orientation(fibers, ornt) if fibers is not None else None
-        masks = {k: apply_orientation(m, ornt) for k, m in masks.items()}
-        muscle_ids = apply_orientation(muscle_ids, ornt) if muscle_ids is not None else None
+    labels, affine, fibers, masks, muscle_ids = _checked_inputs(labels, affine_cm, fibers, fiber_fallback, masks,
+                                                                muscle_ids)
+    labels, fibers, masks, muscle_ids, (affine, spacing, origin, rotation) = _canonical_grid(
+        labels, affine, fibers, masks, muscle_ids)
     shape = labels.shape
-    affine, spacing, origin, rotation = grid_frame(affine)
-    if np.abs(rotation - np.eye(3)).max() > OBLIQUE_TOL:
-        _LOG.warning("oblique scan: the voxel axes are rotated by up to %.2f° from the scanner axes; the model is "
-                     "built in the grid-aligned frame and the rotation is kept in grid/rotation",
-                     np.degrees(np.arccos(np.clip(np.diag(rotation).min(), -1, 1))))
-    if (spacing > 2.0).any():
-        _LOG.warning("voxel size %s cm looks large: is the affine in mm instead of cm?", np.round(spacing, 4).tolist())
-
-    # label value → tissue, muscle
-    rules = parse_tissue_map(tissue_map)
-    vals, counts = _present_labels(labels)
-    unknown = [(int(v), int(c)) for v, c in zip(vals, counts, strict=True) if int(v) not in rules]
-    if unknown:
-        listed = ", ".join(f"{v} ({c} voxels)" for v, c in unknown[:10]) + (" ..." if len(unknown) > 10 else "")
-        raise InputError(f"labels: values {listed} are not in the tissue map (which names {sorted(rules)}); "
-                         "add them to build_model.tissue_map, e.g. {5: fat}")
-    keys = np.array(sorted(rules), dtype=np.int64)
-    key_tissue = np.array([rules[k].tissue for k in keys], dtype=np.int8)
-    tissue_vol = key_tissue[np.searchsorted(keys, labels)]
+    rules, keys, tissue_vol = _tissue_volume(labels, tissue_map)
     node_mask = np.isin(tissue_vol, NODE_TISSUES)
     bone_mask = tissue_vol == BONE
     ijk = np.argwhere(node_mask)
@@ -432,33 +506,8 @@ def model_from_labels(
     sel = (ijk[:, 0], ijk[:, 1], ijk[:, 2])
     tissue = tissue_vol[sel]
     is_muscle = tissue == MUSCLE
-    label_of_node = labels[sel]
-
-    if muscle_ids is not None:
-        if tissue_map is not None and any(isinstance(v, Mapping) for v in tissue_map.values()):
-            raise InputError("tissue_map: with a separate muscle_id volume (segmentation.h5) the tissue map may only "
-                             "name tissues; muscles and their names come from /muscle_id and /muscle_names")
-        names = [str(s) for s in (muscle_names or [])]
-        mid = muscle_ids[sel].astype(np.int64)
-        if mid.size and (mid.min() < 0 or mid.max() > len(names)):
-            raise InputError(f"muscle_id: values must be 0..{len(names)} (the number of muscle names), "
-                             f"got {mid.min()}..{mid.max()}")
-        mid[~is_muscle] = 0
-        unassigned = is_muscle & (mid == 0)
-        if unassigned.any():
-            names.append("unassigned")
-            mid[unassigned] = len(names)
-            _LOG.warning("%d muscle voxels have muscle_id 0; they form an extra muscle 'unassigned' (e.g. %s)",
-                         int(unassigned.sum()), _describe_nodes(unassigned, ijk, affine, 1))
-        label_of_node = None                              # per-label fibres are not allowed here
-    else:
-        names = list(dict.fromkeys(r.muscle for r in rules.values() if r.tissue == MUSCLE))
-        key_mid = np.array([names.index(rules[k].muscle) + 1 if rules[k].tissue == MUSCLE else 0 for k in keys])
-        mid = key_mid[np.searchsorted(keys, label_of_node)]
-    present = set(np.unique(mid[is_muscle]).tolist())
-    absent = [nm for i, nm in enumerate(names, 1) if i not in present]
-    if absent:
-        _LOG.warning("muscle(s) %s have no voxel in the labels (kept with their id, no nodes)", ", ".join(absent))
+    names, mid, label_of_node = _muscle_identity(labels[sel], is_muscle, ijk, affine, rules, keys, tissue_map,
+                                                 None if muscle_ids is None else muscle_ids[sel], muscle_names)
 
     fiber = _node_fibers(ijk, is_muscle, mid, names, label_of_node, rules,
                          fibers, muscle_fibers, fiber_fallback, rotation, affine)

@@ -313,8 +313,16 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
         Further HTML fragments (the per-model comparison and the registered sections of
         :mod:`pixmuscle.report.sections`), placed before the solver statistics.
     """
-    from .summary import newton_table
+    parts = _page_head(summary) + _warnings_section(summary) + _main_result_section(summary, figures, tissue)
+    parts += _segmentation_section(summary, figures) + _model_and_slices_section(summary, figures)
+    parts += list(sections)
+    parts += _solver_section(summary, figures) + _configuration_section(summary, report_config)
+    parts += _provenance_section(summary)
+    return page(summary["title"], parts)
 
+
+def _page_head(summary: Mapping[str, Any]) -> list[str]:
+    """Title, notes on the inputs, the status and the key facts of the results."""
     parts = [f"<h1>{esc(summary['title'])}</h1>"]
     if summary.get("synthetic"):
         parts.append('<div class="note"><b>Synthetic inputs.</b> This model was built from synthetic phantom '
@@ -329,7 +337,7 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
         parts.append(discretisation_box(summary["discretisation"]))
     fmax = summary.get("F_max_N")
     nw = summary["newton"]
-    by_displacement = (summary.get("protocol") or {}).get("kind") == "displacement"
+    by_displacement = _by_displacement(summary)
     facts = {
         "results file": summary["results"],
         "nodes": summary["n_nodes"],
@@ -348,7 +356,12 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
                                  + (f" (load steps planned: {nw['n_steps_planned']}, plus the initial state)"
                                     if nw.get("n_steps_planned") else ""))
     parts.append(kv_table(facts))
+    return parts
 
+
+def _warnings_section(summary: Mapping[str, Any]) -> list[str]:
+    """Every stage's warnings."""
+    parts = []
     parts.append("<h2>Warnings</h2>")
     groups = _warning_groups(summary["warnings"])
     if groups:
@@ -357,8 +370,13 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
                 parts.append(f"<h3>{esc(stage)}</h3><ul>" + "".join(f"<li>{esc(w)}</li>" for w in groups[stage]) + "</ul>")
     else:
         parts.append("<p>None, in any stage.</p>")
+    return parts
 
-    if by_displacement:
+
+def _main_result_section(summary: Mapping[str, Any], figures: Mapping[str, Any], tissue: Mapping[str, Any]) -> list[str]:
+    """The force against activation and the tissue table, or the displacement-driven protocol's section."""
+    parts = []
+    if _by_displacement(summary):
         parts += _displacement_section(summary, figures)
     else:
         parts.append(f"<h2>{esc(SECTIONS['force'])}</h2>")
@@ -372,7 +390,12 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
         parts.append(table(hdr, [[r[k] for k in keys] for r in tissue["rows"]]))
         parts.append(f'<p class="foot">{esc(tissue["footnote"])} Cell volume {fmt(tissue["cell_volume_cm3"])} cm³. '
                      "Data (with node counts): <code>tissue_table.csv</code>.</p>")
+    return parts
 
+
+def _segmentation_section(summary: Mapping[str, Any], figures: Mapping[str, Any]) -> list[str]:
+    """Segmentation figures, warnings and areas per slice, where there are any."""
+    parts = []
     qc = summary.get("segmentation_qc") or {}
     seg_figs = _figures(figures, "segmentation")
     if seg_figs or qc:
@@ -389,7 +412,12 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
             parts.append(table([html_units(h) for h in qc["areas_header"]], qc["areas"]))
             parts.append(f'<p class="foot">From <code>{esc(qc["file"])}</code>; data: '
                          "<code>segmentation_areas.csv</code>.</p>")
+    return parts
 
+
+def _model_and_slices_section(summary: Mapping[str, Any], figures: Mapping[str, Any]) -> list[str]:
+    """The 3-D view, the slice figures and the ParaView note."""
+    parts = []
     if summary.get("view3d"):
         parts.append(f"<h2>{esc(SECTIONS['model'])}</h2>")
         parts.append(view3d_section(summary["view3d"]))
@@ -402,7 +430,7 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
         parts.append(f'<p class="foot">Planes through x = {pos[0]:.3g} cm, y = {pos[1]:.3g} cm, z = {pos[2]:.3g} cm. '
                      "Arrows: in-plane displacement, drawn to the length scale given in the figure key.</p>")
     if summary["outputs"].get("fields_pvd"):
-        clock = ("the prescribed displacement in cm, or step number when it does not increase" if by_displacement
+        clock = ("the prescribed displacement in cm, or step number when it does not increase" if _by_displacement(summary)
                  else "activation α, or step number when α does not increase")
         parts.append(f'<p class="foot">ParaView: open <code>fields.pvd</code> (time = {clock}) '
                      "or <code>fields.xdmf</code>. The files hold the model's voxel cells "
@@ -410,9 +438,15 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
                      "with <code>displacement [cm]</code> for the deformed body: its point data is the model's own "
                      "field at the cell corners (the RK approximation Σ Ψ_J(x) d_J); stresses are cell data (each "
                      "node's cell). Units, the tissue and muscle names and these notes are in the field data.</p>")
+    return parts
 
-    parts.extend(sections)
 
+def _solver_section(summary: Mapping[str, Any], figures: Mapping[str, Any]) -> list[str]:
+    """Newton's statistics, the constraint gap and the solver's information."""
+    parts = []
+    from .summary import newton_table
+
+    nw = summary["newton"]
     parts.append(f"<h2>{esc(SECTIONS['solver'])}</h2>")
     parts.append(kv_table({"status": summary["status"], "total Newton iterations": nw["total_iterations"],
                            "max iterations in a step": nw["max_iterations"],
@@ -434,7 +468,12 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
         parts.append(kv_table(summary["file_attributes"]))
     if summary.get("sign_convention"):
         parts.append(f'<p class="foot"><b>sign convention:</b> {esc(summary["sign_convention"])}</p>')
+    return parts
 
+
+def _configuration_section(summary: Mapping[str, Any], report_config: Mapping[str, Any]) -> list[str]:
+    """Each stage's configuration, the report's and the run information."""
+    parts = []
     parts.append("<h2>Configuration</h2>")
     for r in summary.get("stages", []):
         parts.append(f"<h3>{esc(r['stage'])}</h3>")
@@ -444,10 +483,20 @@ def report_page(summary: Mapping[str, Any], figures: Mapping[str, Any], *, tissu
     if summary.get("extra"):
         parts.append("<h3>run information</h3>")
         parts.append(f"<pre>{esc(json.dumps(summary['extra'], indent=2, default=str))}</pre>")
+    return parts
 
+
+def _provenance_section(summary: Mapping[str, Any]) -> list[str]:
+    """The results' SHA-256, versions and every stage's input files."""
+    parts = []
     parts.append("<h2>Provenance</h2>")
     parts.append(kv_table({"results SHA-256": summary["results_sha256"], **summary["versions"]}))
     prov_rows = _provenance_rows(summary.get("stages", []))
     if prov_rows:
         parts.append(table(["stage", "input file (relative to the config file where recorded)", "SHA-256"], prov_rows))
-    return page(summary["title"], parts)
+    return parts
+
+
+def _by_displacement(summary: Mapping[str, Any]) -> bool:
+    """Whether the results are of a displacement-driven protocol (not an activation ramp)."""
+    return (summary.get("protocol") or {}).get("kind") == "displacement"

@@ -41,8 +41,7 @@ the scaled pressure mass c/(μ_p V_p) instead (c = ``schur_scale``). On the leg 
 penalty number, FGMRES reaches 10⁻⁶ on the first Newton system (α = 0.095), stopped on the mixed
 residual, in 31, 32 and 32 iterations at K/μ ≈ 95, 951 and 9,506 (5,460 nodes; 79, 116 and 131
 with ``schur: mass`` and the condensed stop, an earlier version), in 34 on 21,169 nodes, 41 on
-73,753 and 46 on the 295,073 of the 0.078-cm pixels at K/μ ≈ 951 (docs/performance.md, "Where
-the solver targets stand").
+73,753 and 46 on the 295,073 of the 0.078-cm pixels at K/μ ≈ 951 (the git history of docs/performance.md).
 
 GMRES. The preconditioner — one V-cycle with fixed sweeps, exact region solves, a diagonal Ŝ — is
 one fixed linear operator, so GMRES preconditioned from the right needs no basis of preconditioned
@@ -258,13 +257,13 @@ class _BlockTriangular:
 class MixedAMGOptions(CGAMGOptions):
     """Options of ``solve.solver: {backend: mixed_amg, …}``."""
 
-    rebuild_cost: int = field(default=40, metadata={"range": (1, None), "doc": "what a build of the AMG hierarchy with its region factors and Schur diagonal costs, in FGMRES iterations (~40 at 74k nodes: 18 s against 0.42 s per iteration): the hierarchy is rebuilt once the iterations beyond its rate right after the last build add up to this many (within a solve too; see cg_amg)"})
+    rebuild_cost: int = field(default=40, metadata={"range": (1, None), "doc": "what a build of the AMG hierarchy with its region factors and Schur diagonal costs, in FGMRES iterations (a build's wall time over one iteration's; the statistics give both as preconditioner_build_s and the solve times): the hierarchy is rebuilt once the iterations beyond its rate right after the last build add up to this many (within a solve too; see cg_amg)"})
     schur_scale: float = field(default=0.5, metadata={"gt": 0, "doc": "with schur: mass, c of the diagonal Schur complement diag(c/(μ_p V_p) + 1/(V_p K̄_p)): the typical eigenvalue of G K_d⁻¹ Gᵀ against the pressure mass"})
     restart: int = field(default=200, metadata={"range": (1, None), "doc": "GMRES basis size (vectors kept before a restart; memory restart × the unknowns)"})
     schur: str = field(default="probed", metadata={"choices": ("probed", "mass"), "doc": "diagonal Schur approximation: `probed`, the diagonal of G M Gᵀ (M the displacement block's preconditioner) by probing with probe_spacing³ colours of the patch grid at each preconditioner build; `mass`, c/(μ_p V_p) with c = schur_scale"})
     probe_spacing: int = field(default=3, metadata={"range": (2, None), "doc": "with schur: probed, same-colour patches of the probe are this many patch boxes apart (spacing³ colours, as many V-cycles at each preconditioner build)"})
     region_solves: bool = field(default=True, metadata={"doc": "after each V-cycle, solve the displacement block exactly on the node regions of the boundary conditions (the supports of their constraint points: end slabs, bone surfaces), where the stiff penalty couplings live (linsolve/subdomains.py)"})
-    drop_tol: float = field(default=0.0, metadata={"range": (0, None), "doc": "the multigrid's stand-in leaves out every off-diagonal node block weaker than drop_tol times the geometric mean of its two diagonal blocks (Frobenius norms; linsolve/multigrid.py drop_weak_blocks); 0 (default) keeps them all: the stand-in is then positive definite, and leaving blocks out makes it indefinite (0.005: 35 negative pivots on the 21k leg at 0.078-cm pixels, and 53 instead of 36 FGMRES iterations on the first Newton system)"})
+    drop_tol: float = field(default=0.0, metadata={"range": (0, None), "doc": "the multigrid's stand-in leaves out every off-diagonal node block weaker than drop_tol times the geometric mean of its two diagonal blocks (Frobenius norms; linsolve/multigrid.py drop_weak_blocks); 0 (default) keeps them all: the stand-in is then positive definite; leaving blocks out can make it indefinite and the multigrid a worse preconditioner"})
 
 
 @BACKENDS.register("mixed_amg", options=MixedAMGOptions)

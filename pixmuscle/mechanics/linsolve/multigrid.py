@@ -1,65 +1,28 @@
 r"""Algebraic multigrid V-cycles for the iterative backends: pyamg smoothed aggregation, or hypre
 BoomerAMG through petsc4py.
 
-Both take the filtered stand-in of the tangent (BSR, 3 × 3 blocks, ~300 non-zeros per row; in
-``mixed_amg`` ~140 after :func:`drop_weak_blocks`) and return an object whose ``@`` applies one
-V-cycle. ``cg_amg`` and ``mixed_amg`` choose with their
-option ``amg``: ``auto`` takes BoomerAMG where petsc4py (with hypre) imports and pyamg otherwise.
+Both take the filtered stand-in of the tangent (BSR, 3 × 3 node blocks; in ``mixed_amg`` after
+:func:`drop_weak_blocks`) and return an object whose ``@`` applies one V-cycle. ``cg_amg`` and
+``mixed_amg`` choose with their option ``amg``: ``auto`` takes BoomerAMG where petsc4py (with
+hypre) imports and pyamg otherwise. pyamg is pure pip and always there; BoomerAMG is compiled and
+sets up and cycles faster (docs/performance.md).
 
-Why two. pyamg is pure pip and always there; its set-up (smoothed prolongators, Galerkin
-products in Python-driven sparse algebra) dominates a preconditioner build on large models, and
-its symmetric block Gauss–Seidel cycle is most of the cost of a Krylov iteration. BoomerAMG
-(classical coarsening on the nodal strength matrix, extended+i interpolation, compiled C) sets up
-the same 21,169-node stand-in in 1.1 s against ~15 s and cycles in 0.19 s against 0.33 s (with the
-region solves), for 50 FGMRES iterations against 47 on the first Newton system of the leg
-(docs/performance.md, "Multigrid: BoomerAMG and pyamg").
+BoomerAMG settings (hypre's names, :data:`BOOMERAMG_OPTIONS`):
 
-BoomerAMG settings (hypre's names): HMIS coarsening with strength threshold 0.25, each
-displacement component on its own (the "unknown" approach, ``nodal_coarsen`` 0 with three
-functions per node: only couplings between like components count, and each component gets its
-own coarse grids). Coarsening the three components of a node together (``nodal_coarsen`` 6, the
-whole 3 × 3 block as strength) is the textbook choice for elasticity, but it leaves the slow
-modes of the leg on pixels finer in-plane than the slice spacing, axial displacement fields
-smooth in-plane that vary along the slices (likely because the components' couplings across
-slices differ: the fibres stiffen the axial one), to the Krylov method: on the first Newton system
-of the leg at 0.078 cm pixels, 43 FGMRES iterations against 54 at 21k nodes and 69 against 80 at
-74k, at the same set-up and cycle time (docs/performance.md, "Multigrid: BoomerAMG and pyamg");
-with nodal coarsening, strength thresholds 0.25 and 0.7, P_max 6, the node ordering and the
-Frobenius-norm block strength (``nodal_coarsen`` 1, 117) gave nothing better. Per component, the
-threshold 0.25 (hypre's default) holds the cycle's quality better than 0.5 as the model grows:
-GMRES on the displacement block alone (V-cycle and region solves, the first Newton system's
-force residual, 10⁻⁶) takes 31 iterations on the 74k leg with 0.25 against 35 with 0.5, and
-FGMRES on the mixed system 41 against 43 there and 46 against 49 on the 295k model (5k: 32
-either way), with a cheaper cycle (0.20 against 0.24 s at 74k on one process); 0.1 and 0.35
-gave 42 and 41 at 74k (docs/performance.md, "The strength threshold"). Extended+i interpolation with
-at most 4 entries per row; one forward hybrid Gauss–Seidel/Jacobi sweep before the coarse-grid
-correction and one backward sweep after it, Gaussian elimination on the coarsest level, so the
-cycle is a fixed symmetric operator (CG in ``cg_amg`` needs that). Operator complexity is ~1.1,
-so the fine level's sweeps are the cycle's cost: a symmetric sweep on both sides (hypre's
-symmetric-SOR/Jacobi) costs twice as much per cycle for the same or a few per cent fewer
-iterations — on the first Newton system of the leg 39 and 50 FGMRES iterations at 5k and 21k
-nodes against 39 and 54 with the one-way sweeps, but 0.050 and 0.200 s against 0.039 and 0.136 s
-per cycle with the region solves, 15 % less solve time and 24 % less set-up at 21k
-(docs/performance.md, "Multigrid: BoomerAMG and pyamg"; these two comparisons with nodal
-coarsening). Rigid-body interpolation (hypre's vector interpolation with the nodes' rotations,
-on nodal coarsening) gave more iterations on the leg's fine pixels, 56 and 85 at 21k and 74k
-nodes against 43 and 69, and a slower set-up and cycle, so it is off. With the earlier stand-in
-the V-cycle did on the mixed system what an exact inverse of its stand-in does (34 against 33
-FGMRES iterations at 5k, 44 against 46 at 21k on 0.078-cm pixels), so no setting of the cycle
-moved the count (docs/performance.md, "Krylov iterations and the model size"): what was left was
-the stand-in's difference from the tangent. A stand-in whose cut rows keep their first moments
-(:func:`..assembly.local_rows`) took the 46 to 39 (docs/performance.md, "The stand-in keeps first
-moments"); on that stand-in the cycle is what falls behind as the model grows, and the threshold
-0.25 took the 39 to 35.
+* HMIS coarsening with strength threshold 0.25 (hypre's default), each displacement component on
+  its own (the "unknown" approach: ``nodal_coarsen`` 0 with three functions per node, so only
+  couplings between like components count and each component gets its own coarse grids);
+* extended+i interpolation with at most 4 entries per row;
+* one forward hybrid Gauss–Seidel/Jacobi sweep before the coarse-grid correction and one backward
+  sweep after it, Gaussian elimination on the coarsest level, so that the cycle is a fixed
+  symmetric operator (CG in ``cg_amg`` needs that);
+* no rigid-body (vector) interpolation.
 
 hypre runs on one core per process. ``amg_processes`` > 1 (option of ``cg_amg``, ``mixed_amg``
 and ``auto``) sets up and cycles each hierarchy on this process and spawned MPI workers
-(:mod:`.amg_processes`): the 74k leg's whole sweep takes 342 s on two processes against 402 s
-on one (274 s against 304 s on a faster machine), the refined 295k model's 47 min against 67 min;
-at 21k nodes two do not pay
-(docs/performance.md, "BoomerAMG on two processes"). Hence ``amg_processes: auto`` (the
-default, :func:`auto_processes`): two processes from :data:`AUTO_PROCESSES_NODES` nodes on where
-the run has two cores of its own, else one.
+(:mod:`.amg_processes`). ``amg_processes: auto`` (the default, :func:`auto_processes`) takes two
+processes from :data:`AUTO_PROCESSES_NODES` nodes on where the run has two cores of its own, else
+one.
 
 References
 ----------
@@ -90,10 +53,10 @@ from .petsc import INSTALL_HINT
 #: choices of the ``amg`` option of the iterative backends
 AMG_CHOICES = ("auto", "hypre", "pyamg")
 
-#: ``amg_processes: auto`` spreads BoomerAMG over :data:`AUTO_PROCESSES` processes from this many nodes on:
-#: the measured whole sweeps at 74k and 295k nodes gain 10-15 % and 30 %, the one at 21k loses 5 %
+#: ``amg_processes: auto`` spreads BoomerAMG over :data:`AUTO_PROCESSES` processes from this many nodes on
+#: (below it the second process costs more than it gains)
 AUTO_PROCESSES_NODES = 50_000
-#: processes ``amg_processes: auto`` takes at most (the number measured; more cores may pay more)
+#: processes ``amg_processes: auto`` takes at most
 AUTO_PROCESSES = 2
 
 _PREFIX = "pixmuscleamg_"
@@ -215,7 +178,7 @@ class BoomerAMG:
         Symmetric positive definite stand-in of the tangent, N/cm, 3 × 3 blocks per node (BSR
         with 3 × 3 blocks, or CSR). Given as a function, the stand-in is made here and released as
         soon as PETSc holds its copy, before hypre's set-up: the set-up's peak memory then does
-        not hold it (0.6 GB on the 74k leg).
+        not hold it.
     """
 
     def __init__(self, K):
@@ -238,7 +201,7 @@ class BoomerAMG:
             del A
         del K
         # in place into hypre's own matrix type, which BoomerAMG then uses without a second copy (one
-        # copy of the stand-in less: 0.23 GB at 21k nodes); the conversion forgets the 3 × 3 node
+        # copy of the stand-in less); the conversion forgets the 3 × 3 node
         # blocks, which tell hypre the three functions per node
         self._A, self._pc, self._x, self._y = hypre_pc(self._A, _PREFIX, BOOMERAMG_OPTIONS)
         self.levels = None  # hypre does not report them through petsc4py
@@ -260,13 +223,10 @@ def drop_weak_blocks(K: sp.bsr_matrix, tol: float) -> sp.bsr_matrix:
     """The stand-in without its weak couplings: every off-diagonal 3 × 3 block with
     ‖K_ab‖_F < tol √(‖K_aa‖_F ‖K_bb‖_F) is dropped, the diagonal blocks are kept.
 
-    Most blocks of the ±2-voxel stand-in are weak: on the 74k leg ``tol`` = 0.005 keeps 144 of
-    335 non-zeros per row, and the V-cycle's cost is its fine level, proportional to the non-zeros.
-    But a stand-in with blocks left out is not positive definite: on the 21k leg at 0.078-cm pixels
-    ``tol`` = 0.005 gives it 35 negative pivots, and FGMRES then needs 53 instead of 36 iterations
-    on the first Newton system (docs/performance.md, "The stand-in is positive definite"). So
-    ``mixed_amg`` keeps every block by default (``drop_tol`` 0). Adding the dropped blocks to the
-    diagonal costs far more iterations (161 against 39 at 21k with ``tol`` = 0.01).
+    Most blocks of the ±2-voxel stand-in are weak, and the V-cycle's cost is its fine level,
+    proportional to the non-zeros; but a stand-in with blocks left out need not be positive
+    definite, which makes the multigrid a worse preconditioner. So ``mixed_amg`` keeps every block
+    by default (``drop_tol`` 0). The dropped blocks are not added to the diagonal.
 
     Parameters
     ----------

@@ -51,8 +51,7 @@ def constraint_regions(system, held: np.ndarray | None = None, tol: float = REGI
     region, 49 iterations; 10⁻³, 5,602 nodes, 49; 5·10⁻³, 53; 2·10⁻², 4,514 nodes, 53. On the
     295k model the bone region has 15,259, 11,061 and 9,002 nodes, and its whole sweep took
     29.4 FGMRES iterations per Newton system with every node against 33.4 with 10⁻³ (measured
-    with the stand-in whose cut rows kept only their sums; docs/performance.md, "What is not met
-    yet").
+    with the stand-in whose cut rows kept only their sums; the git history of docs/performance.md).
 
     Parameters
     ----------

@@ -1,0 +1,240 @@
+"""The tables of measured figures in README.md and docs/*.md, made from ``benchmarks/results/*.json``.
+
+A page holds a generated table between two markers::
+
+    <!-- records:NAME -->
+    ...                      (written by this script; edits inside are overwritten)
+    <!-- /records:NAME -->
+
+where NAME is a key of :data:`TABLES`. Each table says which record file and which command made
+its rows; rows made before the shipped defaults last changed (``"superseded"``) are left out of the
+tables of today's defaults and listed under them with the command that remakes them.
+
+Usage::
+
+    make docs-tables                                   # rewrite every marked block
+    .venv/bin/python benchmarks/docs_tables.py --check # exit 1 when a page differs from its records
+
+``tests/test_docs_tables.py`` runs the check.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "benchmarks" / "results"
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+BLOCK = re.compile(r"(<!-- records:(?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /records:(?P=name) -->)", re.S)
+SOLVE = "benchmarks/results/bench_solve.json"
+EXAMPLES = "benchmarks/results/bench_examples.json"
+
+
+def _load(rel: str):
+    return json.loads((ROOT / rel).read_text())
+
+
+def _minutes(s: float) -> str:
+    return f"{s:,.0f} s" if s < 120 else f"{s:,.0f} s ({s / 60:.1f} min)"
+
+
+def _load_text(r: dict) -> str:
+    la = r.get("load_average")
+    if isinstance(la, dict):
+        before, after = la.get("before", la.get("start")), la.get("after", la.get("end"))
+        return f"{before[0]:.1f} → {after[0]:.1f}"
+    return "—"
+
+
+def _made(r: dict) -> str:
+    """The commit a row was made at, or — for older rows — nothing known."""
+    return r["commit"][:10] if r.get("commit") else "—"
+
+
+def _pixels(r: dict) -> str:
+    return f"{r['spacing_cm'][0]:g} cm"
+
+
+def _stale(rows: list[dict], what: str, command) -> list[str]:
+    """Lines listing rows left out because the defaults changed after them, each with its re-run."""
+    if not rows:
+        return []
+    lines = ["", f"Not shown, {what} made before the last change of the defaults (to be remade):"]
+    lines += [f"- {command(r)}: {r['superseded']}." for r in rows]
+    return lines
+
+
+def sweeps(default: bool = True) -> str:
+    """Whole activation sweeps of the synthetic leg (bench_solve.json) at today's defaults, or (``default``
+    False) at other settings measured since the defaults last changed."""
+    cases = [c for c in _load(SOLVE)["cases"] if "error" not in c and c.get("status") == "complete"]
+    rows = [c for c in cases if bool(c.get("defaults")) == default and not c.get("superseded")]
+    rows.sort(key=lambda c: (c["nodes"], c.get("case", "")))
+    head = ("| nodes | pixel | case | Newton its per step | Krylov its (per Newton system) | multigrid builds | whole sweep "
+            "| peak memory | F_z(z_max) at α = 0.95 | load avg before → after |")
+    lines = [head, "|---" * (head.count("|") - 1) + "|"]
+    for c in rows:
+        its = c["newton_iterations_per_step"][1:]
+        kry = (f"{c['krylov_iterations_total']:,} ({c['krylov_iterations_total'] / max(c['newton_iterations_total'], 1):.1f})"
+               if c.get("krylov_iterations_total") else "—")
+        builds = c.get("preconditioner_builds")
+        build_s = c.get("preconditioner_build_s")
+        build_txt = "—" if not builds else (f"{builds} ({', '.join(f'{x:.0f}' for x in build_s)} s)"
+                                            if isinstance(build_s, list) else str(builds))
+        lines.append(f"| {c['nodes']:,} | {_pixels(c)} | `{c.get('case', c['size'] + ':' + c['backend'])}` | "
+                     f"{', '.join(map(str, its))} | {kry} | {build_txt} | **{_minutes(c['sweep_s'])}** | "
+                     f"**{c['peak_rss_GB']:.2f} GB** | {c['force_z_max_N'][-1]:.3f} N | {_load_text(c)} |")
+    if not rows:
+        lines.append("| (none recorded at these settings since the defaults last changed) | | | | | | | | | |")
+    lines += ["", f"Record: `{SOLVE}`, rows with `\"defaults\": {str(default).lower()}` and no `superseded`; each row's "
+              "command is in it, e.g. `.venv/bin/python benchmarks/bench_solve.py --append --cases "
+              + ("75k:auto" if default else "5k:mixed_amg") + "`. α 0 → 0.95 in 10 load steps, 2 cores."]
+    if default:
+        lines += _stale([c for c in cases if c.get("defaults") and c.get("superseded")], "the default sweep",
+                        lambda c: f"{c['nodes']:,} nodes (`.venv/bin/python benchmarks/bench_solve.py --append --cases "
+                                  f"{c.get('case', c['size'] + ':auto')}`, {c['sweep_s']:g} s then)")
+    return "\n".join(lines)
+
+
+def sweeps_other() -> str:
+    return sweeps(default=False)
+
+
+def first_system() -> str:
+    """The first Newton system's Krylov iterations at each size at the default solver (conditioning records)."""
+    order = ["5k", "20k", "20k-fine", "75k", "75k-fine", "295k"]
+    lines = ["| model | nodes | pixel | FGMRES its (Newton's mixed update) | its, condensed stop | set-up | solve | made |",
+             "|---|---|---|---|---|---|---|---|"]
+    files = []
+    for size in order:
+        rel = f"benchmarks/results/bench_solve_conditioning_{size}.json"
+        if not (ROOT / rel).exists():
+            continue
+        rec = _load(rel)
+        rows = [r for r in rec["rows"] if r.get("default") and r.get("bulk_scale") == 1.0]
+        if not rows:
+            continue
+        r = rows[-1]
+        files.append(rel.rsplit("/", 1)[1])
+        pixel = "0.078 cm" if size.endswith("fine") or size == "295k" else "0.156 cm"
+        made = "since the last change of the defaults" if not r.get("superseded") else r["superseded"].split(" changed")[0]
+        lines.append(f"| `{size}` | {rec['nodes']:,} | {pixel} | **{r.get('krylov_iterations_mixed', '—')}** | "
+                     f"{r['krylov_iterations']} | {r['setup_s']} s | {r.get('mixed_solve_s', r['solve_s'])} s | {made} |")
+    lines += ["", "Records: `benchmarks/results/` " + ", ".join(f"`{f}`" for f in files) + " (the last row with "
+              "`\"default\": true` at the tissues' own bulk moduli); command per row in the record, e.g. "
+              "`.venv/bin/python benchmarks/bench_solve.py --conditioning 75k --append --variants "
+              "projected:2,2,3:mixed_amg:own --scales 1`. The first load step (α = 0.095), FGMRES to 10⁻⁶."]
+    return "\n".join(lines)
+
+
+def _example(key: str) -> dict | None:
+    return _load(EXAMPLES).get(key)
+
+
+def _example_head(r: dict, key: str) -> list[str]:
+    peak = f", peak memory {r['peak_rss_GB']} GB" if r.get("peak_rss_GB") is not None else ", peak memory not recorded"
+    wall = r.get("wall_s") or sum(s["wall_s"] for s in r.get("stages", []))
+    lines = [f"Record: `{EXAMPLES}` entry `{key}`, made {r['date_utc']} UTC by `{r['command']}`: the whole run "
+             f"{_minutes(wall)}{peak}."]
+    if r.get("superseded"):
+        lines.append(f"**This record was {r['superseded']}**; `.venv/bin/python benchmarks/bench_examples.py {key}` "
+                     "remakes it at today's defaults and `make docs-tables` this table.")
+    return lines
+
+
+def example2() -> str:
+    """Example 2 (configs/lower_leg.yaml): coarse and fine model, from bench_examples.json."""
+    r = _example("lower_leg")
+    if r is None:
+        return "No record yet: `.venv/bin/python benchmarks/bench_examples.py lower_leg`."
+    lines = ["| model | nodes | Newton iterations | FGMRES iterations | F_max | solve (solver's clock) |",
+             "|---|---|---|---|---|---|"]
+    for name, m in r["models"].items():
+        lines.append(f"| {name} | {m['nodes']:,} | {m['newton_iterations']} | {m['krylov_iterations']:,} | "
+                     f"{m['F_max_N']:.1f} N | {_minutes(m['solve_s'])} |")
+    conv = next((e["convergence"] for e in r["reports"].values() if e.get("convergence")), None)
+    lines.append("")
+    if conv:
+        d = conv["F_max_relative_difference"]["coarse"]
+        lines.append(f"F_max of the coarse model differs from the fine one's by {100 * d:.2f} % (largest over the "
+                     f"ramp {100 * conv['max_relative_difference']['coarse']:.2f} %).")
+    return "\n".join(lines + _example_head(r, "lower_leg"))
+
+
+#: Example 3 as printed in the paper (Table 3 and its forces; bracketed values are implied, not printed)
+PAPER_EXAMPLE3 = {"muscle": (98.93, 61.89), "imat": (2.83, 6.15), "imct": (20.86, 29.15), "aponeurosis": (None, None),
+                  "table3_total": (159.9, 128.4), "F_max": (68.76, 37.74), "force_per_table3_volume": (0.430, 0.294),
+                  "force_per_muscle_volume": (0.695, 0.610)}
+#: the paper's old/young ratios as it states them (from its unrounded figures), where they differ from the rounded ones'
+PAPER_RATIO = {"muscle": "62.5 %", "table3_total": "(80.3 %)", "force_per_muscle_volume": "87.7 %"}
+
+
+def example3() -> str:
+    """Example 3 (configs/mg_young_old.yaml): both subjects against the paper, from bench_examples.json."""
+    r = _example("mg_young_old")
+    if r is None:
+        return "No record yet: `.venv/bin/python benchmarks/bench_examples.py mg_young_old`."
+    q = {path.split("/")[-2]: e["compared"] for path, e in r["reports"].items()}
+    y, o = q["young"], q["old"]
+    rows = [("muscle [cm³]", "muscle", ".2f"), ("IMAT [cm³]", "imat", ".3f"),
+            ("IMCT, without the aponeurosis [cm³]", "imct", ".2f"), ("aponeurosis [cm³]", "aponeurosis", ".2f"),
+            ("Table 3 total: muscle + IMAT + IMCT + aponeurosis [cm³]", "table3_total", ".1f"),
+            ("F_max [N]", "F_max", ".2f"), ("F_max / Table 3 total volume [N/cm³]", "force_per_table3_volume", ".3f"),
+            ("F_max / muscle volume [N/cm³]", "force_per_muscle_volume", ".3f")]
+
+    def paper(v):
+        return "—" if v is None else (f"({v:g})" if isinstance(v, float) and v > 100 else f"{v:g}")
+
+    lines = ["| | young | paper | old | paper | old / young | paper |", "|---|---|---|---|---|---|---|"]
+    for label, key, fmt in rows:
+        py, po = PAPER_EXAMPLE3[key]
+        ratio = f"{100 * o[key] / y[key]:.1f} %"
+        pratio = PAPER_RATIO.get(key) or ("—" if py is None else f"{100 * po / py:.1f} %")
+        if key in ("F_max", "force_per_muscle_volume"):
+            ratio, pratio = f"**{ratio}**", f"**{pratio}**"
+        lines.append(f"| {label} | {y[key]:{fmt}} | {paper(py)} | {o[key]:{fmt}} | {paper(po)} | {ratio} | {pratio} |")
+    nodes = {path.split("/")[-2]: e["n_nodes"] for path, e in r["reports"].items()}
+    lines += ["", f"Bracketed: implied by the paper's F_max and force per total volume, not printed. Solved on the "
+                  f"coarse models, {nodes['young']:,} (young) and {nodes['old']:,} (old) nodes."]
+    return "\n".join(lines + [""] + _example_head(r, "mg_young_old"))
+
+
+#: NAME → function making the block's text (without the markers)
+TABLES = {"sweeps": sweeps, "sweeps-other": sweeps_other, "first-system": first_system,
+          "example2": example2, "example3": example3}
+
+
+def render(text: str) -> str:
+    """``text`` with every marked block rewritten from the records (an unknown NAME is an error)."""
+    def block(m):
+        name = m.group("name")
+        if name not in TABLES:
+            raise KeyError(f"<!-- records:{name} -->: no such table (known: {', '.join(TABLES)})")
+        return f"{m.group(1)}{TABLES[name]()}\n{m.group(4)}"
+
+    return BLOCK.sub(block, text)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--check", action="store_true", help="write nothing; exit 1 when a page differs from its records")
+    args = ap.parse_args(argv)
+    stale = []
+    for page in PAGES:
+        text = page.read_text()
+        new = render(text)
+        if new != text:
+            stale.append(page.relative_to(ROOT))
+            if not args.check:
+                page.write_text(new)
+    verb = "differ from their records" if args.check else "rewritten"
+    print(f"{len(stale)} page(s) {verb}" + (": " + ", ".join(map(str, stale)) if stale else ""))
+    return 1 if args.check and stale else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,51 @@
+"""What every benchmark record carries (benchmarks/_record.py), and the records' state: the solve-time
+estimate is the fit to today's default sweeps, and no default row older than the defaults is unmarked."""
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _module(name):
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_a_record_carries_every_field():
+    record = _module("_record")
+    fields = record.Run(defaults=True, command="x").fields()
+    assert set(fields) == {"command", "commit", "utc", "machine", "load_average", "defaults", "peak_rss_GB"}
+    assert fields["command"] == "x" and fields["defaults"] is True and fields["peak_rss_GB"] > 0
+    assert set(fields["load_average"]) == {"before", "after"} and len(fields["load_average"]["before"]) == 3
+    assert "cpus" in fields["machine"] and "memory_GB" in fields["machine"]
+    assert fields["utc"].endswith("+00:00")
+
+
+def test_a_child_run_is_counted_in_the_tree():
+    record = _module("_record")
+    code, usage, workers = record.run_child(["-c", "import sys; sys.exit(3)"])
+    assert code == 3 and usage.ru_maxrss > 0 and workers == 0
+
+
+def test_the_estimate_is_the_fit_to_todays_default_sweeps():
+    fit = _module("fit_time_estimate")
+    from pixmuscle.preflight import NODES_REF, STEP_SECONDS
+
+    rows = fit.current_default_sweeps()
+    assert len(rows) >= 3 and not any(r.get("superseded") for r in rows)
+    assert fit.fit(rows, NODES_REF) == tuple(STEP_SECONDS)
+
+
+def test_default_rows_made_before_the_last_change_are_marked():
+    record = _module("_record")
+    last = record.DEFAULTS_CHANGES[-1][1]
+    cases = json.loads((ROOT / "benchmarks" / "results" / "bench_solve.json").read_text())["cases"]
+    for c in cases:
+        if c.get("utc") and c["utc"] < last:
+            assert c.get("superseded"), c.get("case")
