@@ -16,14 +16,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import platform
-import resource
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _record import Run  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results"
@@ -31,16 +30,6 @@ AMPLITUDES = (0.03, 0.35, 0.70)
 #: phantom → (make_leg_phantom arguments, config whose segment settings and seeds are used)
 PHANTOMS = {"demo": (dict(shape=(96, 96, 5), pixel_cm=0.156, slice_cm=0.5, seed=0), "demo.yaml"),
             "paper": (dict(shape=(176, 176, 25), pixel_cm=0.078125, slice_cm=0.5, seed=0), "lower_leg.yaml")}
-
-
-def _commit() -> str:
-    try:
-        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
-                               text=True).stdout.strip()
-        return rev + ("-dirty" if dirty else "")
-    except OSError:
-        return "unknown"
 
 
 def run_case(phantom: str, amplitude: float, correction: str, work: Path) -> dict:
@@ -75,7 +64,7 @@ def run_case(phantom: str, amplitude: float, correction: str, work: Path) -> dic
 
 
 def main() -> int:
-    load0 = [round(x, 2) for x in os.getloadavg()]
+    run = Run(defaults=True)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for phantom in PHANTOMS:
@@ -83,17 +72,14 @@ def main() -> int:
                 for corr in ("none", "n4"):
                     rows.append(run_case(phantom, a, corr, Path(tmp)))
                 print(json.dumps(rows[-1]), flush=True)
-    rec = {"command": "python " + " ".join(sys.argv), "commit": _commit(),
-           "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-           "machine": {"cpus": os.cpu_count(), "system": platform.platform()},
-           "load_average": {"before": load0, "after": [round(x, 2) for x in os.getloadavg()]},
-           "defaults": True, "peak_rss_GB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 2),
+    rec = {**run.fields(),
            "phantoms": {k: f"SYNTHETIC make_leg_phantom({v[0]}, bias=b), segmented as configs/{v[1]}" for k, v in PHANTOMS.items()},
            "cases": rows}
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "bench_bias_field.json").write_text(json.dumps(rec, indent=2) + "\n")
-    lines = ["# Segmentation under a bias field (SYNTHETIC demo leg)", "",
-             f"`{rec['command']}` at {rec['commit']}, {rec['utc']}, load average {load0} → {rec['load_average']['after']}.", "",
+    lines = ["# Segmentation under a bias field (SYNTHETIC legs)", "",
+             f"`{rec['command']}` at {rec['commit']}, {rec['utc']}, load average {rec['load_average']['before']} → "
+             f"{rec['load_average']['after']}.", "",
              "| phantom | bias amplitude | correction | outline | bone | fat | connective tissue | muscle mean | muscle min | segment (s) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
