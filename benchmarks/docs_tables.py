@@ -203,9 +203,24 @@ def example3() -> str:
     return "\n".join(lines + [""] + _example_head(r, "mg_young_old"))
 
 
+def bias_field() -> str:
+    """Segmentation Dice under a bias field, with and without N4 (bench_bias_field.json)."""
+    r = _load("benchmarks/results/bench_bias_field.json")
+    lines = ["| phantom | bias field | correction | outline | bone | fat | connective tissue | muscles (mean / lowest) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for c in r["cases"]:
+        d = c["dice"]
+        lines.append(f"| {c['phantom']} {' × '.join(map(str, c['shape']))} | ±{c['bias_amplitude'] * 100:.0f} % | "
+                     f"{c['bias_correction']} | {d['outline']:.3f} | {d['bone']:.3f} | {d['fat']:.3f} | "
+                     f"{d['connective_tissue']:.3f} | {d['muscle_mean']:.3f} / {d['muscle_min']:.3f} |")
+    lines += ["", f"Dice against the phantoms' truth. Record `benchmarks/results/bench_bias_field.json`, made by "
+                  f"`{r['command']}` at {_made(r)} ({r['utc'][:10]}, load average {_load_text(r)})."]
+    return "\n".join(lines)
+
+
 #: NAME → function making the block's text (without the markers)
 TABLES = {"sweeps": sweeps, "sweeps-other": sweeps_other, "first-system": first_system,
-          "example2": example2, "example3": example3}
+          "example2": example2, "example3": example3, "bias-field": bias_field}
 
 
 def render(text: str) -> str:
