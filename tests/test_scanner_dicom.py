@@ -265,3 +265,20 @@ def test_shipped_scanner_config_runs_from_its_dicom_folder(tmp_path):
     assert dice(labels == 4, truth == 4) >= 0.95 and dice(labels > 0, truth > 0) >= 0.99
     rerun = run_subject(load_run(ROOT / "configs" / "scanner.yaml", output_dir=tmp_path / "out").cases[0])
     assert "segment" in rerun["skipped"]                    # the folder's files unchanged: nothing converted again
+
+
+def test_without_the_extra_the_error_names_the_install_command(tmp_path, monkeypatch):
+    """A DICOM folder, an NRRD label map or N4 without their libraries: exit-2 errors with the one install command."""
+    import sys
+
+    from pixmuscle.imaging.bias import n4_correct
+    from pixmuscle.io.labelmap import read_label_map
+
+    files, folder = _series(tmp_path)
+    for module in ("pydicom", "nrrd", "SimpleITK"):
+        monkeypatch.setitem(sys.modules, module, None)                     # import fails as if not installed
+    for call in (lambda: dicom_to_nifti(folder, tmp_path / "cache"),
+                 lambda: read_label_map(tmp_path / "x.seg.nrrd"),
+                 lambda: n4_correct(np.ones((4, 4, 2)), (0.1, 0.1, 0.5))):
+        with pytest.raises(InputError, match=r"pip install 'pixmuscle\[scanner\]'"):
+            call()
