@@ -81,6 +81,8 @@ def subject_uncertainty(rows: Sequence[Mapping[str, Any]], cfg: Any = None) -> d
         "F_max_mean_N": f["mean"], "F_max_sd_N": f["sd"], "ci95_low_N": f["low"], "ci95_high_N": f["high"],
         "F_max_min_N": f["min"], "F_max_max_N": f["max"], "t": f["t"], "interval": INTERVAL_TEXT,
         "noise_free_F_max_N": nf_f,
+        "shift_N": None if nf_f is None or f["mean"] is None else f["mean"] - nf_f,
+        "shift_percent": None if not nf_f or f["mean"] is None else 100.0 * (f["mean"] - nf_f) / nf_f,
         "noise_free_inside": (None if nf_f is None or f["low"] is None else bool(f["low"] <= nf_f <= f["high"])),
         "force_per_muscle_volume_mean_N_per_cm3": fv["mean"], "force_per_muscle_volume_ci95_low_N_per_cm3": fv["low"],
         "force_per_muscle_volume_ci95_high_N_per_cm3": fv["high"], "noise_free_force_per_muscle_volume_N_per_cm3": nf.get(_FPMV),
@@ -116,6 +118,7 @@ def _plot(rows: Sequence[Mapping[str, Any]], rec: Mapping[str, Any], subject: st
         bx.axhline(rec["F_max_mean_N"], color="tab:blue", linewidth=1.0, label="mean")
     if rec["noise_free_F_max_N"] is not None:
         bx.axhline(rec["noise_free_F_max_N"], color="black", linestyle="--", linewidth=1.2, label="noise-free")
+    bx.set_xticks([p["realisation"] for p in rec["per_realisation"]])
     bx.set_xlabel("realisation")
     bx.set_ylabel("F_max [N]")
     bx.grid(alpha=0.3)
@@ -135,13 +138,18 @@ def _headline(rec: Mapping[str, Any]) -> str:
         return f"<p>Fewer than two realisations finished: no interval ({rec['realisations']} of {rec['realisations_planned']}).</p>"
     half = (rec["ci95_high_N"] - rec["ci95_low_N"]) / 2.0
     nf = rec["noise_free_F_max_N"]
-    rel = f" ({100 * half / rec['F_max_mean_N']:.2g} % of it)" if rec["F_max_mean_N"] else ""
+    rel = f" (± {100 * half / rec['F_max_mean_N']:.2g} %)" if rec["F_max_mean_N"] else ""
     inside = ("" if rec["noise_free_inside"] is None else " — inside the interval" if rec["noise_free_inside"]
               else " — <b>outside the interval</b>")
     return (f"<p class=\"big\"><b>F_max = {rec['F_max_mean_N']:.4g} ± {half:.3g} N</b>{rel}: 95 % prediction interval "
             f"{rec['ci95_low_N']:.4g} – {rec['ci95_high_N']:.4g} N over {rec['realisations']} noisy realisations "
             f"(range {rec['F_max_min_N']:.4g} – {rec['F_max_max_N']:.4g} N, s = {rec['F_max_sd_N']:.3g} N). "
-            f"Noise-free F_max: {_fmt(nf)} N{inside}.</p>")
+            f"Noise-free F_max: {_fmt(nf)} N{inside}; the realisations' mean is "
+            f"{_signed(rec['shift_percent'])} % from it (the noise's systematic effect on F_max).</p>")
+
+
+def _signed(v) -> str:
+    return "—" if v is None else f"{float(v):+.2g}"
 
 
 def _fmt(v) -> str:
