@@ -356,7 +356,7 @@ def load_run(path: str | Path, *, strict: bool = True, overrides=(), output_dir:
                 extra = dict(info, shared_dir=subj_dir if study else None,
                              study_sections=study.sections if study else frozenset(), plugins=plugins)
                 if realisation:
-                    merged = _realisation_raw(merged)
+                    merged = _realisation_raw(merged, realisation, uncertainty.realisations, name)
                     extra.update(shared_dir=subj_dir, study_sections=frozenset({"uncertainty"}), realisation=realisation)
                 case = _parse_case(merged, case_name, where, base_dir, out_dir, **extra)
                 if uncertainty is not None and case.uncertainty.realisations != uncertainty.realisations:
@@ -379,11 +379,13 @@ def load_run(path: str | Path, *, strict: bool = True, overrides=(), output_dir:
 REALISATION_REPORT = {"vtu": False, "xdmf": False, "view3d": False, "slices": False, "segmentation_qc": False}
 
 
-def _realisation_raw(raw: dict) -> dict:
-    """A case's config as its uncertainty realisations run it: a light report (:data:`REALISATION_REPORT`)
-    and none of the extra solves of ``muscle_forces`` / ``force_length``."""
+def _realisation_raw(raw: dict, realisation: int, n: int, subject: str) -> dict:
+    """A case's config as its uncertainty realisation ``realisation`` of ``n`` runs it: a light report
+    (:data:`REALISATION_REPORT`) titled as the realisation, and none of the extra solves of
+    ``muscle_forces`` / ``force_length``."""
     out = {k: v for k, v in raw.items() if k not in ("muscle_forces", "force_length")}
     out["report"] = {**(raw.get("report") or {}), **REALISATION_REPORT}
+    out["title"] = f"{raw.get('title', subject)} — noisy realisation {realisation} of {n} (uncertainty)"
     return out
 
 

@@ -136,6 +136,39 @@ def test_prediction_interval_is_the_spread_not_the_standard_error():
     assert prediction_interval([1.0])["low"] is None
 
 
+def _summary(f: float, volume: float = 10.0) -> dict:
+    a = np.linspace(0, 0.95, 4)
+    return {"F_max_N": f, "force_per_muscle_volume_N_per_cm3": f / volume, "volumes_cm3": {"muscle": volume},
+            "status": "complete", "failed": False, "curve": {"alpha": list(a), "end_force_N": list(f * a / 0.95),
+                                                            "converged": [True] * 4}}
+
+
+def test_uncertainty_page_of_a_cohort(tmp_path):
+    """Two subjects: each subject's files from its rows alone, and the comparison says whether the force per
+    muscle volume differs by more than the intervals."""
+    from pixmuscle.report.uncertainty_page import uncertainty_summary
+    from pixmuscle.uncertainty import UncertaintyConfig
+
+    young = [100.0, 98.0, 103.0, 101.0]
+    old = [60.0, 62.0, 59.0, 61.0, None]                       # the last realisation failed
+    rows = [{"subject": "young", "realisation": i, "case": f"r{i:02d}" if i else "", "summary": _summary(f),
+             "error": None, "output_dir": str(tmp_path / "young")} for i, f in enumerate(young)]
+    rows += [{"subject": "old", "realisation": i, "case": f"r{i:02d}" if i else "",
+              "summary": None if f is None else _summary(f), "error": "solve: failed" if f is None else None,
+              "output_dir": str(tmp_path / "old")} for i, f in enumerate(old)]
+    dirs = {"young": tmp_path / "young", "old": tmp_path / "old"}
+    page = uncertainty_summary(rows, UncertaintyConfig(realisations=4), tmp_path, subject_dirs=dirs,
+                               subjects=["young", "old"])
+    y = json.loads((tmp_path / "young" / "uncertainty.json").read_text())
+    o = json.loads((tmp_path / "old" / "uncertainty.json").read_text())
+    assert y["realisations"] == 3 and y["noise_free_F_max_N"] == 100.0
+    assert y["F_max_mean_N"] == pytest.approx(np.mean(young[1:]))
+    assert o["realisations"] == 3 and o["failed"] == [4] and o["realisations_planned"] == 4
+    assert (tmp_path / "old" / "uncertainty.csv").read_text().count("\n") == 5   # header + 4 realisations
+    text = page.read_text()
+    assert "yes: the intervals do not overlap" in text and "solve: failed" in text
+
+
 # --------------------------------------------------------------------------- config
 def _config(tmp_path: Path, **changes) -> Path:
     raw = yaml.safe_load((ROOT / "configs" / "uncertainty.yaml").read_text())
@@ -191,9 +224,9 @@ def test_realisation_cases_and_folders(tmp_path):
 
 # --------------------------------------------------------------------------- end to end
 def test_small_uncertainty_run_end_to_end(tmp_path):
-    """The demo, noise-free and in 2 realisations (3 load steps, light reports) through the serial runner:
+    """The demo, noise-free and in 2 realisations (3 load steps, light reports) on a local Dask cluster:
     the files, the interval containing the noise-free F_max, the realisations reproducible from the seed,
-    and a re-run that skips every stage."""
+    and a serial re-run that skips every stage up to the solve."""
     from pixmuscle.io.segmentation import read_segmentation
     from pixmuscle.pipeline import load_run, run_cases
     from pixmuscle.stages.perturb import run_perturb
@@ -204,7 +237,7 @@ def test_small_uncertainty_run_end_to_end(tmp_path):
     raw = yaml.safe_load(cfg.read_text())
     raw["segment"]["qc_png"] = False
     cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
-    done = run_cases(cfg, workers=0)
+    done = run_cases(cfg, workers=2)                                      # the Dask runner: a local cluster
     assert not done["failures"], done["failures"]
     out = tmp_path / "out"
     assert (out / "uncertainty.html").is_file() and (out / "uncertainty_curves.png").is_file()
