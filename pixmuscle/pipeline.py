@@ -61,6 +61,7 @@ _LOG = logging.getLogger("pixmuscle.pipeline")
 #: config section → (module, dataclass name)
 SECTIONS = {
     "segment": ("pixmuscle.segmentation.config", "SegmentConfig"),
+    "uncertainty": ("pixmuscle.uncertainty.config", "UncertaintyConfig"),
     "build_model": ("pixmuscle.model.config", "BuildModelConfig"),
     "coarsen": ("pixmuscle.model.config", "CoarsenConfig"),
     "solve": ("pixmuscle.mechanics.config", "SolveConfig"),
@@ -82,7 +83,8 @@ class PipelineConfig:
     ``name`` is unique within a run: the subject name, followed by ``/<case>`` in a study.
     ``shared_dir`` (studies only) holds the stages the study does not vary; ``params`` the
     (key, value) pairs of the study combination; ``plugins`` the source files of the config's
-    plugins (:func:`pixmuscle.plugins.load_plugins`).
+    plugins (:func:`pixmuscle.plugins.load_plugins`); ``realisation`` the uncertainty realisation
+    of the case (1, 2, ...; 0: the noise-free case), see :mod:`pixmuscle.uncertainty`.
     """
 
     name: str
@@ -104,6 +106,8 @@ class PipelineConfig:
     shared_dir: Path | None = None
     study_sections: frozenset = frozenset()
     plugins: tuple = ()
+    uncertainty: Any = None
+    realisation: int = 0
 
     def varied_sections(self) -> frozenset:
         """Config sections a study varies, plus every section downstream of the first of them."""
@@ -145,6 +149,8 @@ class RunConfig:
     execution : runner dataclass or None
         The ``execution`` section (:func:`pixmuscle.runners.parse_execution`), e.g.
         :class:`pixmuscle.runners.dask.Dask`; None when the config has none.
+    uncertainty : UncertaintyConfig or None
+        The top-level ``uncertainty`` section: each subject is run noise-free and in its realisations.
     """
 
     path: Path
@@ -154,6 +160,7 @@ class RunConfig:
     cohort: bool
     study: Study | None = None
     execution: Any = None
+    uncertainty: Any = None
 
 
 def _section_class(name: str):
@@ -187,10 +194,29 @@ def _parse_case(raw: dict, name: str, where: str, base_dir: Path, out_dir: Path,
         if sec in raw:
             sections[sec] = parse_section(_section_class(sec), raw[sec], f"{where}{sec}", base_dir)
     _check_muscle_names(sections, where)
+    if "uncertainty" in sections:
+        _check_uncertainty(sections, where)
     return PipelineConfig(
         name=name, title=str(raw.get("title", extra.get("subject") or name)), synthetic=bool(raw.get("synthetic", False)),
         output_dir=out_dir, models=tuple(models), base_dir=base_dir, **sections, **extra,
     )
+
+
+def _check_uncertainty(sections: dict, where: str) -> None:
+    """An ``uncertainty`` section perturbs what the segment stage made: it needs that stage, a DTI with
+    tensors for DTI noise, and no hand-made label map replacing the perturbed labels."""
+    unc, seg, bm = sections["uncertainty"], sections.get("segment"), sections.get("build_model")
+    if seg is None:
+        raise InputError(f"{where}uncertainty: needs a segment section: the realisations perturb the DTI and the "
+                         "segmentation it makes (a model built from a label map alone has neither)")
+    if unc.dti_snr is not None and seg.dwi is None and seg.dti_tensor is None:
+        raise InputError(f"{where}uncertainty.dti_snr: segment.dti_v1 gives fibre directions without their tensors, "
+                         "so there is no signal to add noise to; give segment.dti_tensor or segment.dwi, or set "
+                         "uncertainty.dti_snr: null")
+    if unc.boundary_voxels > 0 and bm is not None and getattr(bm, "labels", None) is not None:
+        raise InputError(f"{where}uncertainty.boundary_voxels: build_model.labels replaces the segmentation's labels, "
+                         "so a moved boundary would not reach the model; set boundary_voxels: 0 or drop "
+                         "build_model.labels")
 
 
 def _check_muscle_names(sections: dict, where: str) -> None:
@@ -266,7 +292,8 @@ def load_run(path: str | Path, *, strict: bool = True, overrides=(), output_dir:
         root = (base_dir / raw["output_dir"]).resolve()
     else:
         root = (Path.cwd() / "out" / path.stem).resolve()
-    study = parse_study(raw.get("study"), set(SECTIONS), f"{path}: study")
+    study = parse_study(raw.get("study"), set(SECTIONS) - {"uncertainty"}, f"{path}: study")
+    uncertainty = _top_uncertainty(raw, study, path, base_dir)
     from .runners import parse_execution
 
     execution = parse_execution(raw.get("execution"), f"{path}: execution")
@@ -297,14 +324,22 @@ def load_run(path: str | Path, *, strict: bool = True, overrides=(), output_dir:
         (tuple(zip(study.keys, vals, strict=True)), cname) for vals, cname in zip(study.cases, study.names, strict=True)]
     if study is not None:
         _check_study(study, len(entries), path, base_dir)
+    if uncertainty is not None:  # the noise-free case, then the realisations (pixmuscle.uncertainty)
+        width = max(2, len(str(uncertainty.realisations)))
+        combos = [((), "", 0)] + [((), f"r{r:0{width}d}", r) for r in range(1, uncertainty.realisations + 1)]
+    else:
+        combos = [(params, cname, 0) for params, cname in combos]
     cases = []
     folders: dict[Path, str] = {}
     for name, s, where, subj_dir in entries:
         bad = sorted(set(s) - _SUBJECT_KEYS - {"name"})
         base_ok = study is not None and _parses(common, s, sets, bad, name, where, base_dir, subj_dir)
-        for params, cname in combos:
+        if uncertainty is None and "uncertainty" in s:
+            raise InputError(f"{path}: {where}uncertainty: a subject may change the keys of a top-level uncertainty "
+                             "section, but there is none; put the section at the top level")
+        for params, cname, realisation in combos:
             case_name = f"{name}/{cname}" if cname else name
-            out_dir = subj_dir / cname if cname else subj_dir
+            out_dir = (subj_dir / "uncertainty" / cname if realisation else subj_dir / cname) if cname else subj_dir
             if out_dir in folders:
                 raise InputError(f"{path}: cases '{folders[out_dir]}' and '{case_name}' write to the same folder "
                                  f"{out_dir}: duplicate case folder")
@@ -320,7 +355,15 @@ def load_run(path: str | Path, *, strict: bool = True, overrides=(), output_dir:
                     merged = set_key(merged, key, value, f"{path}: study.vary")
                 extra = dict(info, shared_dir=subj_dir if study else None,
                              study_sections=study.sections if study else frozenset(), plugins=plugins)
-                cases.append(_parse_case(merged, case_name, where, base_dir, out_dir, **extra))
+                if realisation:
+                    merged = _realisation_raw(merged, realisation, uncertainty.realisations, name)
+                    extra.update(shared_dir=subj_dir, study_sections=frozenset({"uncertainty"}), realisation=realisation)
+                case = _parse_case(merged, case_name, where, base_dir, out_dir, **extra)
+                if uncertainty is not None and case.uncertainty.realisations != uncertainty.realisations:
+                    raise InputError(f"{path}: {where}uncertainty.realisations: the number of realisations is one for "
+                                     f"the whole run ({uncertainty.realisations}, the top-level section's); a subject "
+                                     "may change the other keys")
+                cases.append(case)
             except InputError as exc:
                 if base_ok:  # the subject is valid without the study's values: the study is at fault
                     raise InputError(f"{path}: study.vary: {exc} (study case {cname}); nothing was run") from None
@@ -329,7 +372,31 @@ def load_run(path: str | Path, *, strict: bool = True, overrides=(), output_dir:
                 msg = f"{exc} (study case {cname})" if cname else str(exc)
                 cases.append(SubjectError(case_name, msg, out_dir, **info))
     return RunConfig(path, root, cases, tuple(e[0] for e in entries), subjects is not None and subject is None, study,
-                     execution)
+                     execution, uncertainty)
+
+
+#: report keys of a realisation: curves, tables and summary.json only (its F_max is what the run needs)
+REALISATION_REPORT = {"vtu": False, "xdmf": False, "view3d": False, "slices": False, "segmentation_qc": False}
+
+
+def _realisation_raw(raw: dict, realisation: int, n: int, subject: str) -> dict:
+    """A case's config as its uncertainty realisation ``realisation`` of ``n`` runs it: a light report
+    (:data:`REALISATION_REPORT`) titled as the realisation, and none of the extra solves of
+    ``muscle_forces`` / ``force_length``."""
+    out = {k: v for k, v in raw.items() if k not in ("muscle_forces", "force_length")}
+    out["report"] = {**(raw.get("report") or {}), **REALISATION_REPORT}
+    out["title"] = f"{raw.get('title', subject)} — noisy realisation {realisation} of {n} (uncertainty)"
+    return out
+
+
+def _top_uncertainty(raw: dict, study: Study | None, path: Path, base_dir: Path):
+    """The top-level ``uncertainty`` section (None when absent); a study and an uncertainty run are two runs."""
+    if raw.get("uncertainty") is None:
+        return None
+    if study is not None:
+        raise InputError(f"{path}: uncertainty: a config has either a study or an uncertainty section, not both "
+                         "(run the uncertainty of one combination with its values set in the sections)")
+    return parse_section(_section_class("uncertainty"), raw["uncertainty"], f"{path}: uncertainty", base_dir)
 
 
 def _check_study(study: Study, n_subjects: int, path: Path, base_dir: Path) -> None:
@@ -456,7 +523,7 @@ def run_cases(path: str | Path, *, force: bool = False, start: str | None = None
     for name, err in failures.items():
         _LOG.error("%s: invalid configuration: %s", name, err)
     folders = {f for c in cases if c.name in plans for f in stage_folders(plans[c.name]) | {c.output_dir}}
-    if run.cohort or run.study is not None:
+    if run.cohort or run.study is not None or run.uncertainty is not None:
         folders.add(run.root_dir)
     with hold_folders(folders):  # one run at a time in these folders
         progress = Progress([c.name for c in cases if c.name in plans])
@@ -503,7 +570,8 @@ def _check_upstream(cfg: PipelineConfig, stages: list, start: str | None, allow_
 def _case_summary(cfg: PipelineConfig, outcome) -> dict:
     results = results_paths(cfg)
     summary = {"name": cfg.name, "subject": cfg.subject or cfg.name, "case": cfg.case,
-               "params": {k: v for k, v in cfg.params}, "output_dir": str(cfg.output_dir),
+               "params": {k: v for k, v in cfg.params}, "realisation": cfg.realisation,
+               "output_dir": str(cfg.output_dir),
                "ran": list(outcome.ran), "skipped": list(outcome.skipped),
                "results": {k: str(v) for k, v in results.items()}}
     report_dir = cfg.output_dir / "report"
@@ -512,6 +580,24 @@ def _case_summary(cfg: PipelineConfig, outcome) -> dict:
             summary["report"] = str(report_dir / name)
             break
     return summary
+
+
+def _write_uncertainty(run: RunConfig, resolved: list, failures: dict[str, str]) -> list[str]:
+    """Each subject's ``uncertainty.csv`` / ``.json`` / ``_curves.png`` and the run's ``uncertainty.html``."""
+    from .report.uncertainty_page import uncertainty_summary
+
+    by_name = {s["name"]: r for s, r in resolved}
+    rows = [{"subject": c.subject, "realisation": getattr(c, "realisation", 0), "case": c.case,
+             "summary": by_name.get(c.name), "error": failures.get(c.name), "output_dir": str(c.output_dir)}
+            for c in run.cases]
+    if not any(r["summary"] for r in rows) and not any(r["error"] for r in rows):
+        return []  # e.g. --until segment: nothing to summarise
+    subject_dirs = {c.subject: c.output_dir for c in run.cases if not getattr(c, "realisation", 0)}
+    title = next((c.title for c in run.cases if isinstance(c, PipelineConfig)), "")
+    page = uncertainty_summary(rows, run.uncertainty, run.root_dir, subject_dirs=subject_dirs,
+                               subjects=list(run.subjects),
+                               title=f"Force uncertainty from the scan — {title}" if title else "")
+    return [str(page)]
 
 
 def _report_summary(s: dict) -> dict | None:
@@ -533,7 +619,7 @@ def _report_summary(s: dict) -> dict | None:
 
 def _write_summaries(run: RunConfig, summaries: list[dict], failures: dict[str, str]) -> list[str]:
     """cohort_status.json, the cohort page(s) and the study page of a run; returns the pages written."""
-    if not run.cohort and run.study is None:
+    if not run.cohort and run.study is None and run.uncertainty is None:
         return []
     root = run.root_dir
     root.mkdir(parents=True, exist_ok=True)
@@ -543,10 +629,15 @@ def _write_summaries(run: RunConfig, summaries: list[dict], failures: dict[str, 
     from .report.cohort import cohort_summary
 
     if run.study is None:
-        sums = [r for _, r in resolved if r is not None]
-        if not sums and not fail_list:  # e.g. --until segment: no subject has a report yet
-            return []
-        return [str(cohort_summary(sums, root, failures=fail_list))]
+        pages = [] if run.uncertainty is None else _write_uncertainty(run, resolved, failures)
+        if not run.cohort:
+            return pages
+        noise_free = {c.name for c in run.cases if not getattr(c, "realisation", 0)}
+        sums = [r for s, r in resolved if r is not None and s["name"] in noise_free]
+        fails = [f for f in fail_list if f["name"] in noise_free]
+        if not sums and not fails:  # e.g. --until segment: no subject has a report yet
+            return pages
+        return [str(cohort_summary(sums, root, failures=fails)), *pages]
     from .report.study_page import study_summary
 
     rows = []

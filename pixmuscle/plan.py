@@ -35,6 +35,7 @@ STAGES = ("segment", "build-model", "coarsen", "solve", "report")
 #: stage kind → (schema, version) of the file it writes (None: not an HDF5 stage file, always runs)
 SCHEMAS = {
     "segment": (_segmentation.SCHEMA, _segmentation.VERSION),
+    "perturb": (_segmentation.SCHEMA, _segmentation.VERSION),
     "build-model": (_model.SCHEMA, _model.VERSION),
     "coarsen": (_model.SCHEMA, _model.VERSION),
     "solve": (_results.SCHEMA, _results.VERSION),
@@ -44,7 +45,7 @@ SCHEMAS = {
 }
 
 #: stage kind → config section it depends on
-SECTION_OF = {"segment": "segment", "build-model": "build_model", "coarsen": "coarsen", "solve": "solve",
+SECTION_OF = {"segment": "segment", "perturb": "uncertainty", "build-model": "build_model", "coarsen": "coarsen", "solve": "solve",
               "muscle-forces": "muscle_forces", "force-length": "force_length", "report": "report"}
 
 
@@ -188,7 +189,7 @@ def _after_failure(report: Stage) -> str | None:
 
 
 #: the ``--from`` stage that redoes the output of each stage kind
-RERUN_FROM = {"segment": "segment", "build-model": "build-model", "coarsen": "coarsen", "solve": "solve",
+RERUN_FROM = {"segment": "segment", "perturb": "build-model", "build-model": "build-model", "coarsen": "coarsen", "solve": "solve",
               "muscle-forces": "solve", "force-length": "solve"}
 
 _UNSET = "(not set)"
@@ -441,8 +442,17 @@ def plan_case(cfg: Any, start: str | None = None, until: str | None = None) -> l
     bm = cfg.build_model
     if bm is None and cfg.segment is None:
         raise InputError(f"{cfg.name}: neither a `segment` nor a `build_model` section: nothing to build a model from")
+    if cfg.segment is not None and getattr(cfg, "realisation", 0):
+        # an uncertainty realisation: its own segmentation, the noise-free one perturbed (pixmuscle.stages.perturb)
+        noisy = stage_dir(cfg, "perturb") / "segmentation.h5"
+        if "build-model" in active:
+            unc = {"segment": cfg.segment, "uncertainty": cfg.uncertainty, "realisation": cfg.realisation}
+            stages.append(Stage("perturb", "perturb", "pixmuscle.stages.perturb:run_perturb",
+                                {"segment_cfg": cfg.segment, "uncertainty_cfg": cfg.uncertainty,
+                                 "realisation": cfg.realisation, "segmentation_path": seg_path, "out_path": noisy,
+                                 "synthetic": cfg.synthetic}, noisy, unc, (seg_path, *cfg.segment.dti_files())))
     if cfg.segment is not None:
-        bm = _with_segmentation(bm, seg_path, cfg.base_dir)
+        bm = _with_segmentation(bm, noisy if getattr(cfg, "realisation", 0) else seg_path, cfg.base_dir)
     if "build-model" in active:
         stages.append(Stage("build-model", "build-model", "pixmuscle.stages.build_model:run_build_model",
                             {"cfg": bm, "out_path": model_path, "synthetic": cfg.synthetic}, model_path, bm, config_paths(bm)))

@@ -188,6 +188,11 @@ class SegmentConfig:
         "gt": 0.0, "doc": "thickest cortex (cm): dark voxels this close to marrow are bone"})
     qc_png: bool = field(default=True, metadata={"doc": "write per-slice overlay PNGs"})
 
+    def dti_files(self) -> tuple[Path, ...]:
+        """The files (or DICOM folder) the section's DTI is read from."""
+        dwi = () if self.dwi is None else (self.dwi.image, self.dwi.bvals, self.dwi.bvecs)
+        return tuple(p for p in (self.dti_tensor, self.dti_v1, *dwi) if p is not None)
+
     def __post_init__(self):
         if self.series is not None and self.mri is not None and not self.mri.is_dir():
             raise InputError(f"segment.series: only for a DICOM folder; segment.mri {self.mri} is a file")
