@@ -47,6 +47,7 @@ EXAMPLES = {
     "lower_leg": "configs/lower_leg.yaml",
     "mg_young_old_small": "configs/mg_young_old_small.yaml",
     "mg_young_old": "configs/mg_young_old.yaml",
+    "uncertainty": "configs/uncertainty.yaml",
 }
 
 
@@ -164,6 +165,12 @@ def run(example: str, until: str | None) -> dict:
     rec["models_nodes"] = _models(out)
     rec["models"] = _model_records(out, since=t_start)
     rec["reports"] = _outcome(out, since=t_start)
+    summary = out / "uncertainty.json"
+    if summary.is_file() and summary.stat().st_mtime >= t_start:   # an uncertainty study: its interval
+        u = json.loads(summary.read_text())
+        rec["uncertainty"] = {k: u.get(k) for k in ("realisations", "F_max_mean_N", "F_max_sd_N", "ci95_low_N", "ci95_high_N",
+                                                    "noise_free_F_max_N", "noise_free_inside", "shift_N", "shift_percent",
+                                                    "config")}
     rec["status"] = _status(rec)
     return rec
 

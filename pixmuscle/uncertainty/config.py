@@ -45,9 +45,10 @@ class UncertaintyConfig:
         "range": (6, 1000), "doc": "gradient directions of the simulated acquisition"})
     dti_b0_volumes: int = field(default=1, metadata={
         "range": (1, 100), "doc": "non-weighted (b = 0) volumes of the simulated acquisition"})
-    boundary_voxels: float = field(default=1.0, metadata={
+    boundary_voxels: float = field(default=0.0, metadata={
         "range": (0.0, 10.0), "doc": "segmentation boundaries moved in-plane by up to this many voxels by a "
-                                     "smooth random field (0: off; 0 < value ≤ 0.5 moves no voxel centre)"})
+                                     "smooth random field (0: off, the default: it shifts F_max systematically, "
+                                     "docs/uncertainty.md; 0 < value ≤ 0.5 moves no voxel centre)"})
     boundary_length_cm: float = field(default=1.0, metadata={
         "gt": 0, "doc": "correlation length of the boundary displacement field, cm"})
 
