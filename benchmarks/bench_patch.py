@@ -160,15 +160,16 @@ def case_demo(patch):
 
 def write(results: dict, run: Run) -> None:
     meta = run.fields()
-    command = meta["command"]
     OUT.mkdir(parents=True, exist_ok=True)
     path = OUT / "bench_patch.json"
     old = json.loads(path.read_text())["cases"] if path.exists() else {}
     old.update(results)
     path.write_text(json.dumps({"meta": meta, "cases": old}, indent=1))
-    lines = ["# Patch of the projected pressure: 1 × 1 × 3 (held: own) against 2 × 2 × 3 (held: patch)", "", f"Command: `{command}` "
-             f"({meta['utc']}, commit {meta['commit'][:10]}, load average {meta['load_average']['before'][0]} before, "
-             f"{meta['load_average']['after'][0]} after)", "",
+    made = {k: v for k, v in old.items() if isinstance(v, dict) and v.get("command")}
+    lines = ["# Patch of the projected pressure: 1 × 1 × 3 (held: own) against 2 × 2 × 3 (held: patch)", "",
+             "Each case is its own record in `bench_patch.json` (command, commit, load average); made by:", "",
+             *[f"- `{v['command']}` — {v['utc']}, commit {v['commit'][:10]}, load average "
+               f"{v['load_average']['before'][0]} → {v['load_average']['after'][0]}" for v in made.values()], "",
              "| case | 1 × 1 × 3 | 2 × 2 × 3 | 2 × 2 × 3 vs 1 × 1 × 3 |", "|---|---|---|---|"]
     for name in CASES:
         if name not in old:
