@@ -52,13 +52,29 @@ def _reset_peak() -> None:
         pass
 
 
-def _nbytes(x) -> int:
+def _root(a: np.ndarray) -> np.ndarray:
+    """The array that owns ``a``'s memory (``a`` itself unless it is a view of another array)."""
+    while isinstance(a.base, np.ndarray):
+        a = a.base
+    return a
+
+
+def _nbytes(x, seen: set) -> int:
+    """Bytes of an array or sparse matrix not counted yet (views and shared buffers once, by their owner)."""
     if isinstance(x, np.ndarray):
-        return x.nbytes if x.base is None else 0           # views are counted with their base
-    if sp.issparse(x):
-        return sum(getattr(x, a).nbytes for a in ("data", "indices", "indptr", "row", "col", "offsets")
-                   if isinstance(getattr(x, a, None), np.ndarray))
-    return 0
+        arrays = [x]
+    elif sp.issparse(x):
+        arrays = [getattr(x, a) for a in ("data", "indices", "indptr", "row", "col", "offsets")
+                  if isinstance(getattr(x, a, None), np.ndarray)]
+    else:
+        return 0
+    total = 0
+    for a in arrays:
+        r = _root(a)
+        if id(r) not in seen:
+            seen.add(id(r))
+            total += r.nbytes
+    return total
 
 
 def owners(roots: dict, depth: int = 4) -> dict[str, int]:
@@ -70,12 +86,9 @@ def owners(roots: dict, depth: int = 4) -> dict[str, int]:
         if id(obj) in seen or obj is None or isinstance(obj, (str, bytes, int, float, bool, type, types.ModuleType,
                                                              types.FunctionType)):
             return 0
+        if isinstance(obj, np.ndarray) or sp.issparse(obj):
+            return _nbytes(obj, seen)
         seen.add(id(obj))
-        own = _nbytes(obj)
-        if own or isinstance(obj, np.ndarray):
-            if isinstance(obj, np.ndarray) and obj.base is not None and id(obj.base) not in seen:
-                return walk(obj.base, path, level)
-            return own
         if isinstance(obj, dict):
             items = list(obj.items())
         elif isinstance(obj, (list, tuple, set, frozenset)):

@@ -218,9 +218,36 @@ def bias_field() -> str:
     return "\n".join(lines)
 
 
+def memory() -> str:
+    """Where a solve's memory goes: phases and owners of the first Newton system (bench_memory.json)."""
+    r = _load("benchmarks/results/bench_memory.json")
+    lines = ["| model | nodes | phase | wall | resident after | peak during |", "|---|---|---|---|---|---|"]
+    for c in r["cases"]:
+        for p in c["phases"]:
+            lines.append(f"| `{c['size']}` | {c['nodes']:,} | {p['phase']} | {p['wall_s']} s | {p['rss_after_GB']:.2f} GB | "
+                         f"{p['peak_GB']:.2f} GB |")
+    lines += ["", "| model | owner (numpy arrays and sparse matrices, each counted once) | GB |", "|---|---|---|"]
+    for c in r["cases"]:
+        top = sorted(((k, v) for k, v in c["owners_detail_GB"].items() if k.count(".") == 1 and "[" not in k),
+                     key=lambda kv: -kv[1])[:8]
+        for k, v in top:
+            lines.append(f"| `{c['size']}` | `{k}` | {v:.3f} |")
+        lines.append(f"| `{c['size']}` | not held by numpy (factors of the region solves, libraries, Python, free pages) "
+                     f"| {c['not_numpy_GB']:.3f} |")
+        lines.append(f"| `{c['size']}` | BoomerAMG worker process(es), peak | {sum(c['amg_workers_peak_GB']):.3f} |")
+    last = r["cases"][-1]
+    lines += ["", "Per displacement unknown: " + "; ".join(
+        f"`{c['size']}` {c['kB_per_dof']['with_workers']:.1f} kB at the peak (workers included), "
+        f"{c['kB_per_dof']['numpy_owned']:.1f} kB held in numpy arrays" for c in r["cases"]) + ".",
+        f"Record `benchmarks/results/bench_memory.json`, made by `{last['command']}` at {_made(last)} "
+        f"({last['utc'][:10]}, load average {_load_text(last)})."]
+    return "\n".join(lines)
+
+
 #: NAME → function making the block's text (without the markers)
 TABLES = {"sweeps": sweeps, "sweeps-other": sweeps_other, "first-system": first_system,
-          "example2": example2, "example3": example3, "bias-field": bias_field}
+          "example2": example2, "example3": example3, "bias-field": bias_field,
+          "memory": memory}
 
 
 def render(text: str) -> str:
