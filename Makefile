@@ -68,6 +68,7 @@ bench-scale: $(STAMP)
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 75k:auto_1p 20k:auto_2p
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 295k:auto_rebuild100 --checkpoint .bench-checkpoints
 	$(BIN)/python benchmarks/bench_solve.py --probe-direct 75k
+	$(BIN)/python benchmarks/bench_memory.py 75k
 	$(BIN)/python benchmarks/fit_time_estimate.py
 	$(BIN)/python benchmarks/docs_tables.py
 
@@ -76,6 +77,7 @@ bench-scale: $(STAMP)
 # figures of docs/examples.md drawn from its results; hours on 2 cores (Example 2: coarse and fine model).
 # A run made by hand is recorded with `benchmarks/bench_examples.py EXAMPLE --from-run DIR` (no solve).
 examples: $(STAMP)
+	$(BIN)/python benchmarks/bench_examples.py uncertainty
 	$(BIN)/python benchmarks/bench_examples.py mg_young_old
 	$(BIN)/python benchmarks/fig_examples.py mg_young_old
 	$(BIN)/python benchmarks/bench_examples.py lower_leg
@@ -86,6 +88,10 @@ examples-small: $(STAMP)
 	$(BIN)/python benchmarks/bench_examples.py mg_young_old_small
 	$(BIN)/python benchmarks/bench_examples.py lower_leg_small
 	$(BIN)/python benchmarks/fig_examples.py lower_leg_small --out-dir out/lower_leg_small/figures
+
+# the README's two commands on a fresh clone of HEAD, timed with their installs (benchmarks/results/bench_make.json)
+bench-make:
+	$(PYTHON) benchmarks/bench_make.py
 
 # the tables of measured figures in README.md and docs/*.md, rewritten from benchmarks/results/*.json
 # (the blocks between <!-- records:NAME --> and <!-- /records:NAME -->; no solve, seconds)

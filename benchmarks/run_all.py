@@ -18,6 +18,8 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
+#: scripts with make targets of their own (make examples, make bench-scale, make bench-make): not run here
+OWN_TARGETS = {"bench_examples", "bench_make", "bench_memory"}
 
 
 def main() -> int:
@@ -25,7 +27,7 @@ def main() -> int:
     ap.add_argument("--only", nargs="*", help="benchmark names (e.g. bench_rk)")
     args = ap.parse_args()
     RESULTS.mkdir(exist_ok=True)
-    scripts = sorted(HERE.glob("bench_*.py"))
+    scripts = [s for s in sorted(HERE.glob("bench_*.py")) if s.stem not in OWN_TARGETS]
     if args.only:
         scripts = [s for s in scripts if s.stem in args.only]
     rows = []
