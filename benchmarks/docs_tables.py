@@ -146,11 +146,11 @@ def _example_head(r: dict, key: str) -> list[str]:
     return lines
 
 
-def example2() -> str:
-    """Example 2 (configs/lower_leg.yaml): coarse and fine model, from bench_examples.json."""
-    r = _example("lower_leg")
+def example2(key: str = "lower_leg") -> str:
+    """Example 2 (configs/lower_leg.yaml, or its small variant): coarse and fine model, from bench_examples.json."""
+    r = _example(key)
     if r is None:
-        return "No record yet: `.venv/bin/python benchmarks/bench_examples.py lower_leg`."
+        return f"No record yet: `.venv/bin/python benchmarks/bench_examples.py {key}`."
     lines = ["| model | nodes | Newton iterations | FGMRES iterations | F_max | solve (solver's clock) |",
              "|---|---|---|---|---|---|"]
     for name, m in r["models"].items():
@@ -162,7 +162,7 @@ def example2() -> str:
         d = conv["F_max_relative_difference"]["coarse"]
         lines.append(f"F_max of the coarse model differs from the fine one's by {100 * d:.2f} % (largest over the "
                      f"ramp {100 * conv['max_relative_difference']['coarse']:.2f} %).")
-    return "\n".join(lines + _example_head(r, "lower_leg"))
+    return "\n".join(lines + _example_head(r, key))
 
 
 #: Example 3 as printed in the paper (Table 3 and its forces; bracketed values are implied, not printed)
@@ -173,11 +173,12 @@ PAPER_EXAMPLE3 = {"muscle": (98.93, 61.89), "imat": (2.83, 6.15), "imct": (20.86
 PAPER_RATIO = {"muscle": "62.5 %", "table3_total": "(80.3 %)", "force_per_muscle_volume": "87.7 %"}
 
 
-def example3() -> str:
-    """Example 3 (configs/mg_young_old.yaml): both subjects against the paper, from bench_examples.json."""
-    r = _example("mg_young_old")
+def example3(key: str = "mg_young_old") -> str:
+    """Example 3 (configs/mg_young_old.yaml, or its small variant): both subjects against the paper, from
+    bench_examples.json."""
+    r = _example(key)
     if r is None:
-        return "No record yet: `.venv/bin/python benchmarks/bench_examples.py mg_young_old`."
+        return f"No record yet: `.venv/bin/python benchmarks/bench_examples.py {key}`."
     q = {path.split("/")[-2]: e["compared"] for path, e in r["reports"].items()}
     y, o = q["young"], q["old"]
     rows = [("muscle [cm³]", "muscle", ".2f"), ("IMAT [cm³]", "imat", ".3f"),
@@ -190,17 +191,17 @@ def example3() -> str:
         return "—" if v is None else (f"({v:g})" if isinstance(v, float) and v > 100 else f"{v:g}")
 
     lines = ["| | young | paper | old | paper | old / young | paper |", "|---|---|---|---|---|---|---|"]
-    for label, key, fmt in rows:
-        py, po = PAPER_EXAMPLE3[key]
-        ratio = f"{100 * o[key] / y[key]:.1f} %"
-        pratio = PAPER_RATIO.get(key) or ("—" if py is None else f"{100 * po / py:.1f} %")
-        if key in ("F_max", "force_per_muscle_volume"):
+    for label, q_key, fmt in rows:
+        py, po = PAPER_EXAMPLE3[q_key]
+        ratio = f"{100 * o[q_key] / y[q_key]:.1f} %"
+        pratio = PAPER_RATIO.get(q_key) or ("—" if py is None else f"{100 * po / py:.1f} %")
+        if q_key in ("F_max", "force_per_muscle_volume"):
             ratio, pratio = f"**{ratio}**", f"**{pratio}**"
-        lines.append(f"| {label} | {y[key]:{fmt}} | {paper(py)} | {o[key]:{fmt}} | {paper(po)} | {ratio} | {pratio} |")
+        lines.append(f"| {label} | {y[q_key]:{fmt}} | {paper(py)} | {o[q_key]:{fmt}} | {paper(po)} | {ratio} | {pratio} |")
     nodes = {path.split("/")[-2]: e["n_nodes"] for path, e in r["reports"].items()}
     lines += ["", f"Bracketed: implied by the paper's F_max and force per total volume, not printed. Solved on the "
                   f"coarse models, {nodes['young']:,} (young) and {nodes['old']:,} (old) nodes."]
-    return "\n".join(lines + [""] + _example_head(r, "mg_young_old"))
+    return "\n".join(lines + [""] + _example_head(r, key))
 
 
 def bias_field() -> str:
@@ -247,7 +248,8 @@ def memory() -> str:
 #: NAME → function making the block's text (without the markers)
 TABLES = {"sweeps": sweeps, "sweeps-other": sweeps_other, "first-system": first_system,
           "example2": example2, "example3": example3, "bias-field": bias_field,
-          "memory": memory}
+          "memory": memory, "example2-small": lambda: example2("lower_leg_small"),
+          "example3-small": lambda: example3("mg_young_old_small")}
 
 
 def render(text: str) -> str:

@@ -60,7 +60,8 @@ class DWIConfig:
         else:
             for key in ("bvals", "bvecs"):
                 if getattr(self, key) is None:
-                    raise InputError(f"segment.dwi.{key}: required with a NIfTI image ({self.image})")
+                    raise InputError(f"segment.dwi.{key}: required key is missing (a NIfTI image, {self.image}, needs its "
+                                     "b-values and b-vectors files; a DICOM folder carries them in its tags)")
             if self.series is not None:
                 raise InputError(f"segment.dwi.series: only for a DICOM folder; {self.image} is a file")
 

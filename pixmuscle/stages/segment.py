@@ -241,6 +241,11 @@ def write_bias_png(path, field) -> Path:
     fig.colorbar(im, ax=ax, label="bias field (multiplicative)")
     ax.set_title(f"N4 bias field, slice {k}")
     ax.set_axis_off()
+    return _save_png(fig, path)
+
+
+def _save_png(fig, path: Path) -> Path:
+    """``fig`` to ``path``; a full disk leaves no half PNG and raises one line naming it."""
     try:
         fig.savefig(path)
     except OSError as exc:
@@ -289,13 +294,5 @@ def write_qc_pngs(folder, mri, res: SegmentationResult):
                        linewidths=0.4)
         ax.set_axis_off()
         ax.text(2, 2, f"slice {k}", color="yellow", fontsize=8)
-        p = folder / f"slice_{k:03d}.png"
-        try:
-            fig.savefig(p)
-        except OSError as exc:  # disk full: no half PNG, one line naming it
-            p.unlink(missing_ok=True)
-            if exc.errno in WRITE_ERRNOS:
-                raise OutputError(describe_os_error(exc, p)) from None
-            raise
-        paths.append(p)
+        paths.append(_save_png(fig, folder / f"slice_{k:03d}.png"))
     return paths
