@@ -282,3 +282,28 @@ def test_without_the_extra_the_error_names_the_install_command(tmp_path, monkeyp
                  lambda: n4_correct(np.ones((4, 4, 2)), (0.1, 0.1, 0.5))):
         with pytest.raises(InputError, match=r"pip install 'pixmuscle\[scanner\]'"):
             call()
+
+
+def test_n4_recovers_a_known_bias_field():
+    """N4 against the field that made the image: a two-tissue phantom times a smooth ±30 % field; the estimated
+    field equals the true one up to a constant factor (the one thing N4 cannot know) within 2 % at 95 % of the
+    object's voxels and 5 % at every one, and the corrected image's tissues are flat again (their spread at
+    least 5 times smaller than before: 6 % and 13 % → under 2 %)."""
+    pytest.importorskip("SimpleITK")
+    from pixmuscle.imaging.bias import n4_correct
+
+    n = (64, 64, 8)
+    h = np.array([0.2, 0.2, 0.5])
+    x, y, z = np.meshgrid(*(np.arange(k) * s for k, s in zip(n, h, strict=True)), indexing="ij")
+    r = np.hypot(x - 6.3, y - 6.3)
+    tissue = np.where(r < 5.5, np.where(r < 2.5, 1.0, 0.45), 0.0)             # fat-like core, muscle-like ring, air
+    field = 1.0 + 0.3 * np.sin(0.35 * x + 0.2) * np.cos(0.25 * y) + 0.05 * np.cos(0.4 * z)
+    corrected, est = n4_correct(tissue * field, h)
+    inside = tissue > 0
+    ratio = est[inside] / field[inside]
+    dev = np.abs(ratio / np.median(ratio) - 1)
+    assert np.percentile(dev, 95) < 0.02 and dev.max() < 0.05
+    for level in (1.0, 0.45):
+        before, after = (tissue * field)[tissue == level], corrected[tissue == level]
+        cv = after.std() / after.mean()
+        assert cv < 0.02 and cv < before.std() / before.mean() / 5, level
