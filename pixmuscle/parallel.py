@@ -13,6 +13,12 @@ import logging
 import os
 import sys
 
+#: what to do when petsc4py is missing (``solve.solver.backend: petsc``, hypre, a run under ``mpiexec``)
+INSTALL_HINT = ("petsc4py is not installed: on Debian/Ubuntu run `make venv` as root (it installs libpetsc-real-dev "
+                "and builds petsc4py against it), or by hand: apt-get install libpetsc-real-dev libopenmpi-dev "
+                "openmpi-bin; PETSC_DIR=/usr/lib/petscdir/petsc3.18/x86_64-linux-gnu-real pip install "
+                "--no-build-isolation 'cython<3' 'petsc4py==3.18.5' (docs/petsc.md)")
+
 #: environment variables by which MPI launchers (OpenMPI, MPICH/Hydra, PMIx, Slurm) give the process count
 _SIZE_VARS = ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_SIZE", "MPI_LOCALNRANKS")
 
@@ -54,8 +60,6 @@ def _comm():
     try:
         PETSc = import_petsc()
     except ImportError:
-        from .mechanics.linsolve.petsc import INSTALL_HINT
-
         sys.stderr.write(f"error: started by mpiexec with {launched_size()} processes, but {INSTALL_HINT}\n")
         sys.exit(2)
     return PETSc.COMM_WORLD

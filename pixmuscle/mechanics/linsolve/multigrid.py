@@ -44,11 +44,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...errors import InputError
-from ...parallel import import_petsc, launched_size
+from ...parallel import INSTALL_HINT, import_petsc, launched_size
 from ..threaded import thread_count
 from .amg_processes import SpreadBoomerAMG, group, hypre_matrix, hypre_pc
 from .amg_processes import available as amg_processes_available
-from .petsc import INSTALL_HINT
 
 #: choices of the ``amg`` option of the iterative backends
 AMG_CHOICES = ("auto", "hypre", "pyamg")

@@ -23,14 +23,8 @@ from dataclasses import field
 import numpy as np
 
 from ...errors import SolverError
-from ...parallel import import_petsc
+from ...parallel import INSTALL_HINT, import_petsc
 from .base import BACKENDS, Iterative, LinearSolver
-
-#: what to do when petsc4py is missing (config error of ``solve.solver.backend: petsc``)
-INSTALL_HINT = ("petsc4py is not installed: on Debian/Ubuntu run `make venv` as root (it installs libpetsc-real-dev "
-                "and builds petsc4py against it), or by hand: apt-get install libpetsc-real-dev libopenmpi-dev "
-                "openmpi-bin; PETSC_DIR=/usr/lib/petscdir/petsc3.18/x86_64-linux-gnu-real pip install "
-                "--no-build-isolation 'cython<3' 'petsc4py==3.18.5' (docs/petsc.md)")
 
 #: PETSc options used unless ``petsc_options`` sets them
 # GMRES: the tangent of activated muscle is indefinite (CG stops on negative curvature, PETSc reason -10);
