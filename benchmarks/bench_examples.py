@@ -45,6 +45,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 EXAMPLES = {
     "lower_leg_small": "configs/lower_leg_small.yaml",
     "lower_leg": "configs/lower_leg.yaml",
+    "lower_leg_elliptic": "configs/lower_leg_elliptic.yaml",
     "mg_young_old_small": "configs/mg_young_old_small.yaml",
     "mg_young_old": "configs/mg_young_old.yaml",
     "uncertainty": "configs/uncertainty.yaml",
