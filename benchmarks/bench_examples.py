@@ -127,6 +127,7 @@ def _model_records(out: Path, since: float = 0.0) -> dict:
             "alpha_last_converged": float(np.asarray(res.alpha)[conv][-1]) if conv.any() else None,
             "solve_s": None if info.get("total_s") is None else round(float(info["total_s"]), 1),
             "linear_solver": info.get("linear_solver"),
+            "non_elliptic_nodes": info.get("non_elliptic_nodes"),   # at the last converged step
             "krylov_iterations": info.get("krylov_iterations"),
         }
     return found
