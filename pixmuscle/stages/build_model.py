@@ -29,8 +29,13 @@ _LOG = logging.getLogger(__name__)
 AFFINE_ATOL = 1e-4
 
 
+def _on_grid(shape, affine, ref_shape, ref_affine) -> bool:
+    """Whether a volume of ``shape`` / ``affine`` lies on the grid ``ref_shape`` / ``ref_affine``."""
+    return tuple(shape[:3]) == tuple(ref_shape[:3]) and np.allclose(affine, ref_affine, atol=AFFINE_ATOL)
+
+
 def _same_grid(name: str, path: Path, shape, affine, ref_path: Path, ref_shape, ref_affine) -> None:
-    if tuple(shape[:3]) != tuple(ref_shape[:3]) or not np.allclose(affine, ref_affine, atol=AFFINE_ATOL):
+    if not _on_grid(shape, affine, ref_shape, ref_affine):
         raise InputError(
             f"{name} {path} is not on the label grid of {ref_path}: shape {tuple(shape)} vs {tuple(ref_shape)}, "
             f"voxel → cm affine {np.round(affine, 4).tolist()} vs {np.round(ref_affine, 4).tolist()}; "
@@ -57,7 +62,7 @@ def _labels_on_grid(lm, grid):
                              "with its geometry (space directions and origin)")
         _LOG.warning("%s has no geometry; taken to lie on the MRI grid of %s (same shape)", lm.path, ref)
         return lm.labels, affine
-    if tuple(lm.labels.shape) == tuple(shape) and np.allclose(lm.affine, affine, atol=AFFINE_ATOL):
+    if _on_grid(lm.labels.shape, lm.affine, shape, affine):
         return lm.labels, affine
     from ..imaging.resample import resample_labels
 

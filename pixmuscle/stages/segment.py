@@ -126,9 +126,8 @@ def run_segment(cfg, out_path, progress=None, *, synthetic=False):
 
 def _input_paths(cfg) -> list[Path]:
     """The input files and folders the config names, for the stage's provenance."""
-    dwi_files = () if cfg.dwi is None else (cfg.dwi.image, cfg.dwi.bvals, cfg.dwi.bvecs)
-    return [p for p in (cfg.mri, cfg.dti_tensor, cfg.dti_v1, *dwi_files, cfg.imct_mask, cfg.imat_mask,
-                        cfg.aponeurosis_mask) if p is not None]
+    return [p for p in (cfg.mri, *cfg.dti_files(), cfg.imct_mask, cfg.imat_mask, cfg.aponeurosis_mask)
+            if p is not None]
 
 
 def scanner_inputs(cfg, cache_dir) -> SegmentConfig:
