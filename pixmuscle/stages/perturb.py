@@ -29,14 +29,14 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from pixmuscle.errors import InputError
-from pixmuscle.imaging.dti import resample_tensor_to_grid, resample_vectors_to_grid, tensor_from_components
+from pixmuscle.imaging.dti import resample_tensor_to_grid, resample_vectors_to_grid
 from pixmuscle.imaging.dti_noise import acquisition, fibre_angle_deg, noisy_tensors
-from pixmuscle.imaging.nifti import load_volume
 from pixmuscle.io.lineage import capture_warnings, stage_attrs
 from pixmuscle.io.segmentation import read_segmentation, write_segmentation
 from pixmuscle.segmentation.assemble import MUSCLE, fiber_data
 from pixmuscle.segmentation.perturb import boundary_displacement, warp_labels
 from pixmuscle.segmentation.volume import SegmentationResult
+from pixmuscle.stages.segment import dti_source
 
 __all__ = ["run_perturb", "realisation_rngs", "dti_source"]
 
@@ -47,35 +47,10 @@ def realisation_rngs(seed: int, realisation: int) -> tuple[np.random.Generator, 
     return np.random.default_rng(dti), np.random.default_rng(boundary)
 
 
-def dti_source(seg_cfg, qc_dir=None) -> tuple[np.ndarray, np.ndarray, str]:
-    """The segment section's DTI on its own grid: tensors (I, J, K, 3, 3) mm²/s, affine (cm), kind.
-
-    ``kind`` is ``"tensor"`` (a tensor image or the fit of a scanner DWI series) or ``"v1"`` (a
-    principal-eigenvector image, given as rank-one tensors ``v vᵀ``, which cannot carry DTI noise).
-    """
-    from pixmuscle.stages.segment import scanner_inputs
-
-    if seg_cfg.dwi is not None:
-        from pixmuscle.imaging.dwi import load_dwi_tensor
-
-        cfg = scanner_inputs(seg_cfg, Path(qc_dir or ".") / "dicom") if seg_cfg.dwi.image.is_dir() else seg_cfg
-        fit = load_dwi_tensor(cfg.dwi.image, cfg.dwi.bvals, cfg.dwi.bvecs, convention=cfg.dwi.bvecs_convention,
-                              b0_threshold=cfg.dwi.b0_threshold)
-        return fit.tensor, fit.affine, "tensor"
-    if seg_cfg.dti_tensor is not None:
-        vol = load_volume(seg_cfg.dti_tensor, kind="tensor", components=seg_cfg.dti_components,
-                          tensor_order=seg_cfg.tensor_order)
-        return tensor_from_components(vol.data, seg_cfg.tensor_order), vol.affine, "tensor"
-    if seg_cfg.dti_v1 is not None:
-        vol = load_volume(seg_cfg.dti_v1, kind="vectors", components=seg_cfg.dti_components)
-        return vol.data, vol.affine, "v1"
-    raise InputError("uncertainty: the segment section names no DTI (segment.dwi, dti_tensor or dti_v1)")
-
-
 def _fibres_on_grid(seg_cfg, unc, rng, shape, affine, cache_dir) -> tuple[np.ndarray, np.ndarray]:
     """(valid (I, J, K) bool, unit fibres (I, J, K, 3)) of a noisy (or, with ``dti_snr`` null, the
     noise-free) DTI on the MRI grid."""
-    data, d_affine, kind = dti_source(seg_cfg, cache_dir)
+    data, d_affine, kind = dti_source(seg_cfg, cache_dir=cache_dir, where="uncertainty")
     if kind == "v1":
         if unc.dti_snr is not None:
             raise InputError("uncertainty.dti_snr: segment.dti_v1 gives fibre directions without their tensors, so "

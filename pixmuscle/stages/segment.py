@@ -39,7 +39,7 @@ from pixmuscle.outdir import WRITE_ERRNOS, describe_os_error, prepare_output_dir
 from pixmuscle.segmentation.config import SegmentConfig
 from pixmuscle.segmentation.volume import SegmentationResult, segment_volume
 
-__all__ = ["run_segment", "write_qc_pngs"]
+__all__ = ["run_segment", "write_qc_pngs", "dti_source"]
 
 _LOG = logging.getLogger(__name__)
 
@@ -56,24 +56,57 @@ def _mask_on_grid(path, shape, affine, name):
     return resample_labels(vol.data != 0, vol.affine, shape, affine, name=f"{name} {path}")
 
 
-def _dti_on_grid(cfg, shape, affine, qc_dir=None):
+def dti_source(cfg, qc_dir=None, *, cache_dir=None, where: str = "segment") -> tuple[np.ndarray, np.ndarray, str]:
+    """The segment section's DTI on its own grid: tensors (I, J, K, 3, 3) mm²/s, affine (cm), kind.
+
+    ``kind`` is ``"tensor"`` (a tensor image, or the fit of a scanner DWI series) or ``"v1"`` (a
+    principal-eigenvector image (I, J, K, 3), which carries a direction but no tensor and no noise).
+
+    Parameters
+    ----------
+    cfg : SegmentConfig
+    qc_dir : path-like, optional
+        Where the DWI fit's FA/MD/V1 maps go (:func:`pixmuscle.stages.dwi_qc.dwi_tensor_with_qc`);
+        None: no maps.
+    cache_dir : path-like, optional
+        A DWI series given as a DICOM folder is converted once into ``<cache_dir>/dicom``
+        (:func:`scanner_inputs`; default the working directory). The segment stage converts its
+        inputs before and passes NIfTI files.
+    where : str
+        Names the caller in the error message.
+
+    Raises
+    ------
+    InputError
+        The section names no DTI (``dwi``, ``dti_tensor`` or ``dti_v1``).
+    """
     if cfg.dwi is not None:
         from pixmuscle.stages.dwi_qc import dwi_tensor_with_qc
 
+        if cfg.dwi.image.is_dir():
+            cfg = scanner_inputs(cfg, Path(cache_dir or ".") / "dicom")
         fit = dwi_tensor_with_qc(cfg.dwi, qc_dir)
-        return resample_tensor_to_grid(fit.tensor, fit.affine, shape, affine)
+        return fit.tensor, fit.affine, "tensor"
     if cfg.dti_tensor is not None:
         vol = load_volume(cfg.dti_tensor, kind="tensor", components=cfg.dti_components,
                           tensor_order=cfg.tensor_order)
-        d = tensor_from_components(vol.data, cfg.tensor_order)
-        return resample_tensor_to_grid(d, vol.affine, shape, affine)
+        return tensor_from_components(vol.data, cfg.tensor_order), vol.affine, "tensor"
     if cfg.dti_v1 is not None:
         vol = load_volume(cfg.dti_v1, kind="vectors", components=cfg.dti_components)
-        v, has = resample_vectors_to_grid(vol.data, vol.affine, shape, affine)
-        # rank-one tensors v v^T carry the direction; trace 1 where there is data
-        return v[..., :, None] * v[..., None, :], has
-    raise InputError("segment: no DTI input; set segment.dwi (a scanner DWI series), "
+        return vol.data, vol.affine, "v1"
+    raise InputError(f"{where}: no DTI input; set segment.dwi (a scanner DWI series), "
                      "segment.dti_tensor or segment.dti_v1")
+
+
+def _dti_on_grid(cfg, shape, affine, qc_dir=None):
+    """The DTI of ``cfg`` (:func:`dti_source`) on the MRI grid: (tensors (I, J, K, 3, 3), covered
+    (I, J, K) bool); tensors are interpolated, never eigenvectors; a V1 image gives rank-one tensors
+    v vᵀ (trace 1 where there is data)."""
+    data, d_affine, kind = dti_source(cfg, qc_dir)
+    if kind == "v1":
+        v, has = resample_vectors_to_grid(data, d_affine, shape, affine)
+        return v[..., :, None] * v[..., None, :], has
+    return resample_tensor_to_grid(data, d_affine, shape, affine)
 
 
 def run_segment(cfg, out_path, progress=None, *, synthetic=False):
