@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..mechanics.results import NEWTON_COLUMNS, Results
+from ..mechanics.results import NEWTON_COLUMNS, NodeEllipticity, Results
 from ..model.tissues import NODE_TISSUES
 from ..store import open_stage, write_dataset, write_stage
 from .model import read_model_groups, write_model_groups
@@ -115,6 +115,12 @@ def write_results_groups(f, res: Results) -> None:
     constrained = res.constrained_text()
     for k, v in res.prescribed.items():
         write_dataset(pg, k, v, units="cm", constrained=constrained.get(k, ""))
+    ell = res.ellipticity
+    if ell is not None:
+        eg = f.create_group("ellipticity")
+        write_dataset(eg, "acoustic_minimum", np.asarray(ell.minimum, float), units="N/cm^2",
+                      description="smallest acoustic-tensor eigenvalue of the material law; not strongly "
+                                  "elliptic where < 0", step=int(ell.step), n_directions=int(ell.n_directions))
     ng = f.create_group("newton")
     for c in NEWTON_COLUMNS:
         if c in res.newton:
@@ -167,6 +173,21 @@ def _warning_list(raw) -> list[str]:
         except json.JSONDecodeError:
             return [text]
     return [w for w in text.splitlines() if w.strip()]
+
+
+def _ellipticity(f, name: str, n: int, s1: int) -> NodeEllipticity | None:
+    """``/ellipticity`` of an open results file (None when the file has none: written before it was recorded)."""
+    if "ellipticity/acoustic_minimum" not in f:
+        return None
+    ds = f["ellipticity/acoustic_minimum"]
+    if ds.shape != (n,):
+        raise InputError(f"{name}: /ellipticity/acoustic_minimum has shape {ds.shape}, expected ({n},) (N nodes)")
+    if _text(ds.attrs.get("units", "N/cm^2")) not in _STRESS_UNITS:
+        raise InputError(f"{name}: /ellipticity/acoustic_minimum has units {ds.attrs['units']!r}, expected 'N/cm^2'")
+    step = int(ds.attrs.get("step", s1 - 1))
+    if not 0 <= step < s1:
+        raise InputError(f"{name}: /ellipticity/acoustic_minimum is of step {step}, the file stores states 0..{s1 - 1}")
+    return NodeEllipticity(step=step, minimum=np.asarray(ds[()], float), n_directions=int(ds.attrs.get("n_directions", 0)))
 
 
 def load_results(path: str | Path, *, lazy: bool = True) -> Results:
@@ -233,6 +254,7 @@ def load_results(path: str | Path, *, lazy: bool = True) -> Results:
                 c = _text(ds.attrs["constrained"])
                 constrained[k] = np.array([a in c for a in "xyz"])
         newton = _table(f["newton"]) if "newton" in f else {}
+        ellipticity = _ellipticity(f, name, n, s1)
         a = f.attrs
         status = _text(a.get("status", "")).strip() or "unknown (no status attribute)"
         provenance = _json_attr(a, "provenance", {})
@@ -251,7 +273,7 @@ def load_results(path: str | Path, *, lazy: bool = True) -> Results:
             cauchy=fields["cauchy"], max_principal=fields["max_principal"], newton=newton, status=status,
             n_steps_planned=int(_json_attr(a, "n_steps_planned", 0) or 0), info=_json_attr(a, "solver_info", {}),
             sign_convention=_text(a.get("sign_convention", "")), constraint_gap=_json_attr(a, "constraint_gap", {}),
-            warnings=_warning_list(a.get("warnings")), meta=meta,
+            warnings=_warning_list(a.get("warnings")), meta=meta, ellipticity=ellipticity,
         )
     if not np.isin(model.tissue, NODE_TISSUES).all():
         raise InputError(f"{name}: /nodes/tissue holds codes outside {NODE_TISSUES}")

@@ -16,6 +16,10 @@ The file ``results.h5`` (schema ``pixmuscle.results`` v1) is written and read by
                                           attribute ``constrained`` = the constrained components
     /steps/cauchy           (S+1,N,6) N/cm²  Cauchy stress at the nodes, Voigt xx yy zz xy yz xz
     /steps/max_principal    (S+1,N) N/cm²    largest principal Cauchy stress
+    /ellipticity/acoustic_minimum (N,) N/cm²  optional: smallest acoustic-tensor eigenvalue of the
+                            material law at the nodes at one state (the last converged one); the law is
+                            not strongly elliptic where it is < 0; attributes ``step`` (the state) and
+                            ``n_directions`` (:mod:`pixmuscle.mechanics.ellipticity`)
     /newton/<column>        Newton log: step, load_factor, iteration, residual_norm (N),
                             relative_residual, energy_norm (N·cm), line_search
     attrs: status ("complete" | "failed: ..."), sign_convention, n_steps_planned, solver_info (JSON),
@@ -54,6 +58,35 @@ def max_principal(voigt: np.ndarray) -> np.ndarray:
 
 
 @dataclasses.dataclass
+class NodeEllipticity:
+    """Strong ellipticity of the material law at the nodes, at one stored state.
+
+    Attributes
+    ----------
+    step : int
+        The stored state (the solve records the last converged one).
+    minimum : (N,) float64
+        Smallest eigenvalue of the isochoric acoustic tensor over ``n_directions`` reference
+        directions (:func:`pixmuscle.mechanics.ellipticity.acoustic_minimum`), N/cm².
+    n_directions : int
+    """
+
+    step: int
+    minimum: np.ndarray
+    n_directions: int = 300
+
+    @property
+    def non_elliptic(self) -> np.ndarray:
+        """(N,) bool: the law is not strongly elliptic at the node (``minimum < 0``)."""
+        return np.asarray(self.minimum) < 0.0
+
+    @property
+    def count(self) -> int:
+        """Number of nodes where the law is not strongly elliptic."""
+        return int(np.count_nonzero(self.non_elliptic))
+
+
+@dataclasses.dataclass
 class StepFields:
     """Nodal fields of one stored state.
 
@@ -65,11 +98,15 @@ class StepFields:
         Cauchy stress, N/cm², Voigt order xx yy zz xy yz xz.
     max_principal : (N,) float64 or None
         Largest principal Cauchy stress, N/cm².
+    acoustic_minimum : (N,) float64 or None
+        Smallest acoustic-tensor eigenvalue, N/cm² (:class:`NodeEllipticity`), at the state the
+        results record it for; None at the other states.
     """
 
     u: np.ndarray
     cauchy: np.ndarray | None
     max_principal: np.ndarray | None
+    acoustic_minimum: np.ndarray | None = None
 
 
 @dataclasses.dataclass
@@ -87,7 +124,9 @@ class Results:
     warnings (text). ``meta`` is empty after a solve; read from a file it holds the file's
     metadata: ``path``, ``config`` (YAML text), ``provenance``, ``units``, ``stages`` (records of
     the upstream stage files: stage, file, config, provenance, warnings, synthetic), ``synthetic``
-    (bool) and the other root attributes (``attrs``).
+    (bool) and the other root attributes (``attrs``). ``ellipticity`` is the material law's
+    acoustic-tensor minimum at the nodes of the last converged state (:class:`NodeEllipticity`);
+    None for files written before it was recorded.
     """
 
     model: Model
@@ -111,6 +150,7 @@ class Results:
     constraint_gap: dict = dataclasses.field(default_factory=dict)
     warnings: list = dataclasses.field(default_factory=list)
     meta: dict = dataclasses.field(default_factory=dict)
+    ellipticity: NodeEllipticity | None = None
 
     @property
     def n_states(self) -> int:
@@ -127,13 +167,16 @@ class Results:
 
     def step(self, k: int) -> StepFields:
         """Displacement and stresses of stored state ``k`` as numpy arrays (the largest principal
-        stress is computed from ``cauchy`` when it is not stored)."""
+        stress is computed from ``cauchy`` when it is not stored), and the acoustic-tensor minimum
+        when ``k`` is the state of :attr:`ellipticity`."""
         u = np.asarray(self.u[k], float)
         cauchy = None if self.cauchy is None else np.asarray(self.cauchy[k], float)
         mp = None if self.max_principal is None else np.asarray(self.max_principal[k], float)
         if mp is None and cauchy is not None:
             mp = max_principal(cauchy)
-        return StepFields(u=u, cauchy=cauchy, max_principal=mp)
+        ell = self.ellipticity
+        q = np.asarray(ell.minimum, float) if ell is not None and int(ell.step) == int(k) else None
+        return StepFields(u=u, cauchy=cauchy, max_principal=mp, acoustic_minimum=q)
 
     def constrained_text(self) -> dict:
         """Constrained components of each set as text, e.g. ``{"z_min": "xyz", "bone_surface": "xy"}``."""
@@ -154,7 +197,7 @@ class Results:
     def from_steps(cls, model: Model, steps: list[dict], *, failed_rows: Sequence = (), status: str = "complete",
                    n_steps: int = 0, constrained: dict | None = None, info: dict | None = None,
                    sign_convention: str = "", constraint_gap: dict | None = None,
-                   warnings: Sequence[str] = ()) -> Results:
+                   warnings: Sequence[str] = (), ellipticity: NodeEllipticity | None = None) -> Results:
         """Collect the per-step dictionaries of :func:`pixmuscle.mechanics.solve.solve`."""
         n = model.n_nodes
         s1 = len(steps)
@@ -178,4 +221,5 @@ class Results:
             max_principal=np.array([s["max_principal"] for s in steps], float).reshape(s1, n),
             newton=newton, status=status, n_steps_planned=int(n_steps), info=dict(info or {}),
             sign_convention=sign_convention, constraint_gap=dict(constraint_gap or {}), warnings=list(warnings),
+            ellipticity=ellipticity,
         )

@@ -38,7 +38,7 @@ from .config import SolveConfig, SupportConfig
 from .ellipticity import acoustic_minimum, directions
 from .linsolve import make_solver
 from .materials import LAWS, needs
-from .results import Results, cauchy_voigt, max_principal
+from .results import NodeEllipticity, Results, cauchy_voigt, max_principal
 from .scni import SCNI, build_scni, cell_corners, cell_faces, face_incidence, support_radius
 from .stabilization import stabilization_operators, stabilization_stiffness
 from .tangent import ConstantStiffness, MatrixFreeTangent, ProductForm, spd_surrogate
@@ -78,6 +78,53 @@ def material_kw(mat, fiber: np.ndarray, activation) -> dict:
     if "activation" in wanted:
         kw["activation"] = activation
     return kw
+
+
+def tissue_groups(tissue: np.ndarray, materials: dict) -> list[tuple]:
+    """(code, material, node indices) of each tissue present, in :data:`NODE_TISSUES` order."""
+    tissue = np.asarray(tissue)
+    out = []
+    for code in NODE_TISSUES:
+        idx = np.flatnonzero(tissue == code)
+        if idx.size:
+            out.append((code, materials[code], idx))
+    return out
+
+
+def group_kw(mat, fiber: np.ndarray, idx: np.ndarray, alpha: float, activation=None) -> dict:
+    """Keyword arguments of a material's stress functions for the nodes ``idx``: their fibres and α
+    (``alpha`` itself, or with an :class:`~.activation.ActivationRamp` its per-node α at ramp
+    parameter ``alpha``)."""
+    act = alpha if activation is None or "activation" not in needs(mat) else activation.at(alpha)[idx]
+    return material_kw(mat, fiber[idx], act)
+
+
+def material_response(groups: list, fiber: np.ndarray, F: np.ndarray, alpha: float, activation=None,
+                      tangent: bool = True):
+    """P (N, 3, 3), N/cm², and if ``tangent`` A (N, 3, 3, 3, 3), N/cm², at every node, grouped by material.
+
+    Parameters
+    ----------
+    groups : list
+        :func:`tissue_groups` of the model.
+    fiber : (N, 3) float
+        Unit fibre direction per node.
+    F : (N, 3, 3) float
+        Deformation gradients.
+    alpha : float
+        Activation, or the ramp parameter of ``activation``.
+    activation : ActivationRamp, optional
+    """
+    n = F.shape[0]
+    P = np.empty((n, 3, 3))
+    A = np.empty((n, 3, 3, 3, 3)) if tangent else None
+    for _, mat, idx in groups:  # ≤ 3 tissues
+        kw = group_kw(mat, fiber, idx, alpha, activation)
+        if tangent:
+            P[idx], A[idx] = mat.stress_tangent(F[idx], **kw)
+        else:
+            P[idx] = mat.stress(F[idx], **kw)
+    return P, A
 
 
 @dataclasses.dataclass
@@ -134,12 +181,7 @@ class MechanicalSystem:
         self.fiber = np.asarray(model.fiber, float)
         self.A0 = A0
         self.stabilization = stabilization
-        self.groups = []
-        tissue = np.asarray(model.tissue)
-        for code in NODE_TISSUES:
-            idx = np.flatnonzero(tissue == code)
-            if idx.size:
-                self.groups.append((code, materials[code], idx))
+        self.groups = tissue_groups(model.tissue, materials)
         self.penalty = constraints.stiffness(self.n_nodes)
         self.volumetric = None
         if patch is not None:
@@ -279,21 +321,11 @@ class MechanicalSystem:
     def _material_kw(self, code, idx, alpha):
         mat = next(m for c, m, _ in self.groups if c == code)
         # with per-node activation, ``alpha`` is the ramp parameter s of the ActivationRamp
-        act = alpha if self.activation is None or "activation" not in needs(mat) else self.activation.at(alpha)[idx]
-        return material_kw(mat, self.fiber[idx], act)
+        return group_kw(mat, self.fiber, idx, alpha, self.activation)
 
     def material_response(self, F: np.ndarray, alpha: float, tangent: bool = True):
         """P (N, 3, 3) and, if ``tangent``, A (N, 3, 3, 3, 3) per node, grouped by material."""
-        n = F.shape[0]
-        P = np.empty((n, 3, 3))
-        A = np.empty((n, 3, 3, 3, 3)) if tangent else None
-        for code, mat, idx in self.groups:
-            kw = self._material_kw(code, idx, alpha)
-            if tangent:
-                P[idx], A[idx] = mat.stress_tangent(F[idx], **kw)
-            else:
-                P[idx] = mat.stress(F[idx], **kw)
-        return P, A
+        return material_response(self.groups, self.fiber, F, alpha, self.activation, tangent)
 
     def evaluate(self, d: np.ndarray, t: float, alpha: float, pressure: np.ndarray | None = None) -> State:
         """Residual r = −(f_int + f_stab + f_pen) at coefficients d; raises SolverError on inversion.
@@ -536,13 +568,11 @@ def build_system(model: Model, cfg: SolveConfig) -> tuple[MechanicalSystem, dict
     t0 = time.perf_counter()
     stab = cfg.stabilization.method != "none" and cfg.stabilization.coefficient > 0
     rk_kw = dict(kernel=cfg.support.kernel, order=cfg.support.order, support_shape=cfg.support.shape)
-    sup, info["supports_enlarged"] = node_supports(model, cfg)
-    faces = cell_faces(model.X, model.ijk, np.asarray(model.spacing, float))
     bcs = list(cfg.boundary_conditions)
-    scni = build_scni(model.X, model.ijk, model.spacing, sup, face_gradients=stab, faces=faces,
-                      vertex_faces=vertex_rule_faces(model, bcs, faces, at=cfg.penalty.at), **rk_kw)
+    scni, info["supports_enlarged"] = model_scni(model, cfg, face_gradients=stab)
+    sup = scni.support
     info["scni_s"] = time.perf_counter() - t0
-    materials = make_materials(cfg.materials, projected=cfg.volumetric.method == "projected")
+    materials = solve_materials(cfg)
     ident = np.broadcast_to(np.eye(3), (model.n_nodes, 3, 3))
     present = [c for c in NODE_TISSUES if np.any(model.tissue == c)]
     A0 = np.empty((model.n_nodes, 3, 3, 3, 3))
@@ -567,6 +597,31 @@ def build_system(model: Model, cfg: SolveConfig) -> tuple[MechanicalSystem, dict
     if not constraints.points.shape[0]:
         _LOG.warning("no boundary condition constrains any node: the stiffness is singular")
     return system, info
+
+
+def model_scni(model: Model, cfg: SolveConfig, *, face_gradients: bool = False) -> tuple[SCNI, int]:
+    """The SCNI operators of a solve of ``model`` with ``cfg`` (the supports of :func:`node_supports`,
+    end faces held at their vertices by the vertex rule of ``penalty.at``).
+
+    Returns
+    -------
+    scni : SCNI
+        ``scni.deformation_gradient(d)`` is the solve's F at every node.
+    n_enlarged : int
+        Nodes whose support was enlarged.
+    """
+    sup, n_enlarged = node_supports(model, cfg)
+    faces = cell_faces(model.X, model.ijk, np.asarray(model.spacing, float))
+    vf = vertex_rule_faces(model, list(cfg.boundary_conditions), faces, at=cfg.penalty.at)
+    scni = build_scni(model.X, model.ijk, model.spacing, sup, face_gradients=face_gradients, faces=faces,
+                      vertex_faces=vf, kernel=cfg.support.kernel, order=cfg.support.order,
+                      support_shape=cfg.support.shape)
+    return scni, n_enlarged
+
+
+def solve_materials(cfg: SolveConfig) -> dict:
+    """Tissue code → material of a solve (the volumetric part left to the patches when projected)."""
+    return make_materials(cfg.materials, projected=cfg.volumetric.method == "projected")
 
 
 def node_supports(model: Model, cfg: SolveConfig) -> tuple[np.ndarray, int]:
@@ -640,14 +695,33 @@ def constraint_gap(steps: list[dict], h_min: float) -> dict[str, dict]:
     return out
 
 
-def ellipticity_warning(system: MechanicalSystem, state: State) -> tuple[int, str]:
-    """Nodes where the material law is not strongly elliptic at ``state`` and a one-line warning.
+#: reference directions of the ellipticity check at the nodes
+ELLIPTICITY_DIRECTIONS = 300
 
-    Returns (count, message); the message names the count, the smallest acoustic-tensor eigenvalue
-    (:func:`.ellipticity.acoustic_minimum`, 300 directions) and what it means for the results.
-    """
+
+def node_ellipticity(system: MechanicalSystem, state: State, step: int) -> NodeEllipticity:
+    """The material law's smallest acoustic-tensor eigenvalue at every node at ``state`` (stored state
+    ``step``), :func:`.ellipticity.acoustic_minimum` over :data:`ELLIPTICITY_DIRECTIONS` directions,
+    N/cm²; the law is not strongly elliptic where it is < 0."""
     _, A = system.material_response(state.F, state.alpha)
-    q = acoustic_minimum(state.F, A, directions(300))
+    q = acoustic_minimum(state.F, A, directions(ELLIPTICITY_DIRECTIONS))
+    return NodeEllipticity(step=int(step), minimum=q, n_directions=ELLIPTICITY_DIRECTIONS)
+
+
+def ellipticity_warning(minimum: np.ndarray) -> tuple[int, str]:
+    """Nodes where the material law is not strongly elliptic at the last converged step, and a one-line warning.
+
+    Parameters
+    ----------
+    minimum : (N,) float
+        Smallest acoustic-tensor eigenvalue per node, N/cm² (:func:`node_ellipticity`).
+
+    Returns
+    -------
+    (count, message)
+        The message names the count, the smallest eigenvalue and what it means for the results.
+    """
+    q = np.asarray(minimum, float)
     bad = int(np.count_nonzero(q < 0.0))
     return bad, (f"the material law is not strongly elliptic at {bad} of {q.size} nodes at the last converged step "
                  f"(smallest acoustic-tensor eigenvalue {q.min():.3g} N/cm²): deformation can localise there and "
@@ -790,15 +864,18 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
                  "its nodes move %.3g cm in the constrained components", name, g["max_cm"], 100 * g["relative"],
                  g["max_displacement_cm"], g["node_cm"])
     warnings = list(getattr(linsolver, "warnings", []))
-    if last_state:
-        msg = ellipticity_warning(system, last_state[0])
-        info["non_elliptic_nodes"] = int(msg[0])
-        if msg[0]:
-            _LOG.warning(msg[1])
-            warnings.append(msg[1])
+    ellipticity = None
+    if last_state:  # computed once, at the last converged state: the warning and the stored field
+        ellipticity = node_ellipticity(system, last_state[0], len(steps) - 1)
+        bad, msg = ellipticity_warning(ellipticity.minimum)
+        info["non_elliptic_nodes"] = bad
+        if bad:
+            _LOG.warning(msg)
+            warnings.append(msg)
     results = Results.from_steps(model, steps, failed_rows=failed_rows, status=status, n_steps=cfg.steps,
                                  constrained=system.constraints.constrained_components(), info=info,
-                                 sign_convention=SIGN_CONVENTION, constraint_gap=gaps, warnings=warnings)
+                                 sign_convention=SIGN_CONVENTION, constraint_gap=gaps, warnings=warnings,
+                                 ellipticity=ellipticity)
     if error is not None:
         error.results = results
         raise error

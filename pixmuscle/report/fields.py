@@ -20,7 +20,11 @@ Arrays (units in the names and in the field-data array ``units``):
 0 or 1..M; names in ``muscle_names``, index = id), ``imat`` (cells: 1 where the fat node counts as
 IMAT), ``max_principal_cauchy [N/cm^2]`` (cells), ``cauchy [N/cm^2]`` (cells; 6 components XX YY ZZ
 XY YZ XZ, VTK's symmetric-tensor order, component names stored; the XDMF writer stores them in
-the XDMF ``Tensor6`` order).
+the XDMF ``Tensor6`` order). At the state whose strong ellipticity the results record (the last
+converged one, :class:`pixmuscle.mechanics.results.NodeEllipticity`) also
+``acoustic_minimum [N/cm^2]`` (cells: the material law's smallest acoustic-tensor eigenvalue) and
+``non_elliptic`` (cells: 1 where it is < 0, the law not strongly elliptic); absent at the other
+states and for results files that do not record it.
 
 Frames: ``"model"`` writes the grid-aligned model frame (cm). ``"rotated"`` applies
 ``grid/rotation`` R about the frame origin: points and vectors become ``R x``, stresses ``R σ Rᵀ``.
@@ -43,9 +47,13 @@ DISPLACEMENT = "displacement [cm]"
 FIBER = "fiber_direction [1]"
 CAUCHY = "cauchy [N/cm^2]"
 MAX_PRINCIPAL = "max_principal_cauchy [N/cm^2]"
+ACOUSTIC_MINIMUM = "acoustic_minimum [N/cm^2]"
+NON_ELLIPTIC = "non_elliptic"
 UNITS = (f"{DISPLACEMENT}: cm", f"{CAUCHY}: N/cm^2 (components XX YY ZZ XY YZ XZ)", f"{MAX_PRINCIPAL}: N/cm^2",
          f"{FIBER}: unit vector", "tissue: code, see tissue_names", "muscle_id: index into muscle_names",
-         "imat: 1 = fat counted as IMAT", "coordinates: cm, reference configuration", "time: activation alpha")
+         "imat: 1 = fat counted as IMAT", "coordinates: cm, reference configuration", "time: activation alpha",
+         f"{ACOUSTIC_MINIMUM}: N/cm^2, smallest acoustic-tensor eigenvalue of the material law (last converged step)",
+         f"{NON_ELLIPTIC}: 1 = the material law is not strongly elliptic at the node ({ACOUSTIC_MINIMUM} < 0)")
 #: the field-data array ``notes``: what the point data are
 NOTE_POINTS = (f"{DISPLACEMENT} point data: the RK approximation u(x) = sum_J Psi_J(x) d_J at the cell corners, "
                "with the solve's shape functions (kernel, basis, supports) and coefficients d_J")
@@ -138,7 +146,9 @@ def step_mesh(ijk: np.ndarray, origin, spacing, fields: StepFields, *, fiber: np
     ijk : (N, 3) int; origin, spacing : (3,) cm
         The model grid.
     fields : StepFields
-        Displacement (cm) and stresses (N/cm²) of the step at the nodes (cell data).
+        Displacement (cm) and stresses (N/cm²) of the step at the nodes (cell data); its
+        ``acoustic_minimum`` (N/cm²), when given, as ``acoustic_minimum [N/cm^2]`` and the 0/1
+        ``non_elliptic``.
     fiber : (N, 3); tissue, muscle_id : (N,)
         Model data.
     imat : (N,) bool, optional
@@ -168,6 +178,10 @@ def step_mesh(ijk: np.ndarray, origin, spacing, fields: StepFields, *, fiber: np
         cd[MAX_PRINCIPAL] = np.asarray(fields.max_principal, np.float64)
     if cau is not None:
         cd[CAUCHY] = np.asarray(cau, np.float64)
+    q = getattr(fields, "acoustic_minimum", None)
+    if q is not None:  # a scalar of the law at F: the same in every frame
+        cd[ACOUSTIC_MINIMUM] = np.asarray(q, np.float64)
+        cd[NON_ELLIPTIC] = (np.asarray(q) < 0.0).astype(np.int32)
     return meshio.Mesh(np.ascontiguousarray(points, np.float64), [("hexahedron", hexa)],
                        point_data={k: np.ascontiguousarray(v) for k, v in pd.items()},
                        cell_data={k: [np.ascontiguousarray(v)] for k, v in cd.items()})
