@@ -17,23 +17,37 @@ Example 2 (``lower_leg``, and ``lower_leg_small`` for its small variant): reads 
   field u(x) = Σ_J Ψ_J(x) d_J evaluated on a regular grid of each plane (the solve's shape
   functions and coefficients, as the report's ParaView point data), coloured by |u|;
 * ``<prefix>_stress.png``: the largest principal Cauchy stress (N/cm², the smoothed SCNI stress
-  of each node's cell, as in the report) on the same planes with one colour bar (Figure 13).
+  of each node's cell, as in the report) on the same planes with one colour bar (Figure 13), the
+  nodes where the material law is not strongly elliptic at that state outlined in magenta and
+  hatched: from the results' ``/ellipticity`` field, or computed again from their RK coefficients
+  for files written before it was recorded (:func:`pixmuscle.mechanics.node_ellipticity.results_ellipticity`,
+  about 20 s and 1 GB for the 68k-node coarse leg).
 
 Tissue outlines (muscles, connective tissue, fat, the body and the bones) are drawn on every plane.
+Example 2 also measures the paper's qualitative claims on Figures 12 and 13 (benchmarks/example2_claims.py)
+on every model of the run and writes them, with the command, to
+``benchmarks/results/example2_qualitative.json`` (one entry per example).
 
 Run:  .venv/bin/python benchmarks/fig_examples.py mg_young_old
       .venv/bin/python benchmarks/fig_examples.py lower_leg [--run-dir out/lower_leg] [--out-dir docs/figures]
+      .venv/bin/python benchmarks/fig_examples.py lower_leg_elliptic    (the strongly elliptic muscle matrix)
 Writes: docs/figures/example3_force_activation.png; docs/figures/example2_{force_activation,displacement,
-stress}.png (seconds to a minute: reads the results files, evaluates the RK field on a few
-hundred points, no solve).
+stress}.png (example2_elliptic_* for lower_leg_elliptic; under a minute: reads the results files,
+evaluates the RK field on a few hundred points and the ellipticity of the coarse model, no solve).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import sys
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import example2_claims  # noqa: E402
+from _record import Run  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 FIGURES = ROOT / "docs" / "figures"
@@ -42,7 +56,10 @@ EXAMPLES = {
     "mg_young_old": ("configs/mg_young_old.yaml", "example3"),
     "lower_leg": ("configs/lower_leg.yaml", "example2"),
     "lower_leg_small": ("configs/lower_leg_small.yaml", "example2_small"),
+    "lower_leg_elliptic": ("configs/lower_leg_elliptic.yaml", "example2_elliptic"),
 }
+#: the measured claims of Figures 12 and 13, one entry per example
+CLAIMS_JSON = ROOT / "benchmarks" / "results" / "example2_qualitative.json"
 
 
 def run_folder(config: Path) -> Path:
@@ -393,9 +410,28 @@ def plot_displacement_planes(res, step: int, path: Path, *, title: str, step_cm:
     return {"path": path, "u_max_cm": umax, "step_cm": step_cm, **data}
 
 
+def _zone(ax, zone_img, corner, spacing, h, v):
+    """Pixels of ``zone_img`` (nv, nh) bool outlined in magenta (pixel edges) and hatched."""
+    from matplotlib.collections import LineCollection
+
+    from pixmuscle.report.slices import region_edges
+
+    if not zone_img.any():
+        return
+    x0, y0 = corner
+    seg = region_edges(zone_img.astype(np.int64), x0, y0, spacing[h], spacing[v])
+    ax.add_collection(LineCollection(seg, colors="magenta", linewidths=0.9))
+    xs = x0 + (np.arange(zone_img.shape[1]) + 0.5) * spacing[h]
+    ys = y0 + (np.arange(zone_img.shape[0]) + 0.5) * spacing[v]
+    ax.contourf(xs, ys, zone_img.astype(float), levels=[0.5, 1.5], colors="none", hatches=["////"])
+
+
 def plot_stress_planes(res, step: int, path: Path, *, title: str, plane_list=None,
-                       clip_percentile: float = 0.5) -> dict:
+                       clip_percentile: float = 0.5, non_elliptic: np.ndarray | None = None) -> dict:
     """Figure 13-style: the largest principal Cauchy stress (N/cm²) on the three planes, one colour bar.
+
+    ``non_elliptic`` (N,) bool, optional: nodes where the material law is not strongly elliptic at
+    ``step``, outlined in magenta and hatched.
 
     The colour range is the ``clip_percentile`` to ``100 − clip_percentile`` percentile of the values
     on the three planes (a few nodes next to the held ends and bones carry much larger stresses);
@@ -426,8 +462,19 @@ def plot_stress_planes(res, step: int, path: Path, *, title: str, plane_list=Non
         im = ax.imshow(np.ma.masked_invalid(imgs[pl[0]]), origin="lower", extent=ext, cmap=cmap, vmin=vmin, vmax=vmax,
                        interpolation="nearest", aspect="equal")
         _outline(ax, lab, corner, sp, pl[2], pl[3], bone, color="k")
+        if non_elliptic is not None:
+            zone = plane_image(m.ijk, np.asarray(non_elliptic, float), pl[1], pl[4], pl[2], pl[3])[0]
+            _zone(ax, np.nan_to_num(zone, nan=0.0) > 0.5, corner, sp, pl[2], pl[3])
         _label_axes(ax, pl, m)
     _mark_planes(axes[0], plane_list, m)
+    if non_elliptic is not None:
+        from matplotlib.patches import Patch
+
+        n_bad = int(np.count_nonzero(non_elliptic))
+        fig.legend(handles=[Patch(facecolor="none", edgecolor="magenta", hatch="////",
+                                  label=f"material law not strongly elliptic ({n_bad:,} of {m.n_nodes:,} nodes "
+                                        "in the model)")],
+                   loc="lower left", fontsize=8, frameon=False)
     fig.colorbar(im, ax=list(axes), label="largest principal Cauchy stress [N/cm²]", fraction=0.025, pad=0.01,
                  aspect=14, extend="both")
     fig.suptitle(f"{_wrap(title)}\ncolour range {vmin:.3g} … {vmax:.3g} N/cm² ({clip_percentile:g}–{100 - clip_percentile:g} "
@@ -439,8 +486,50 @@ def plot_stress_planes(res, step: int, path: Path, *, title: str, plane_list=Non
     return {"path": path, "vmin": vmin, "vmax": vmax, "min": float(vals.min()), "max": float(vals.max()), **imgs}
 
 
-def example2_figures(run_dir: Path, out_dir: Path, prefix: str, label: str) -> list[Path]:
-    """The three Example 2 figures from the run folder ``run_dir`` (fields of its coarse model)."""
+def node_ellipticity(res, step: int):
+    """The results' :class:`~pixmuscle.mechanics.results.NodeEllipticity` at ``step`` and how it was
+    obtained: as recorded, or computed again from the RK coefficients (files written before it was
+    recorded, or another step); None (and why) when the file holds no usable coefficients or configuration."""
+    from pixmuscle.errors import InputError
+    from pixmuscle.mechanics.node_ellipticity import results_ellipticity
+
+    ell = res.ellipticity
+    if ell is not None and ell.step == step:
+        return ell, "recorded by the solve"
+    try:
+        return results_ellipticity(res, step), "computed again from the results' RK coefficients"
+    except InputError as exc:
+        return None, f"not computed: {exc}"
+
+
+def model_claims(res, step: int, plane_list, non_elliptic: np.ndarray | None = None) -> dict:
+    """The measured claims of Figures 12 and 13 on one model at ``step`` (benchmarks/example2_claims.py)."""
+    f = res.step(step)
+    out = {"n_nodes": res.model.n_nodes, "step": step, "alpha": float(res.alpha[step]),
+           "fig12_sagittal": example2_claims.sagittal_claim(res.model, f.u, plane_list[2][4]),
+           "fig12_fibres": example2_claims.fibre_correlation(res.model, f.u),
+           "fig13_stress_jumps": example2_claims.stress_jumps(res.model, f.max_principal)}
+    if non_elliptic is not None:
+        out["non_elliptic"] = example2_claims.ellipticity_counts(res.model, non_elliptic, plane_list)
+    else:
+        out["non_elliptic"] = {"non_elliptic_nodes": (res.info or {}).get("non_elliptic_nodes"),
+                               "n_nodes": res.model.n_nodes, "note": "the solve's count (field not computed)"}
+    return out
+
+
+def write_claims(example: str, run_dir: Path, models: dict, run: Run) -> Path:
+    """Add (replace) the entry ``example`` of :data:`CLAIMS_JSON`."""
+    data = json.loads(CLAIMS_JSON.read_text()) if CLAIMS_JSON.exists() else {}
+    data[example] = {**run.fields(), "run_dir": str(run_dir), "models": models}
+    CLAIMS_JSON.parent.mkdir(parents=True, exist_ok=True)
+    CLAIMS_JSON.write_text(json.dumps(data, indent=1) + "\n")
+    return CLAIMS_JSON
+
+
+def example2_figures(run_dir: Path, out_dir: Path, prefix: str, label: str, example: str | None = None,
+                     run: Run | None = None) -> list[Path]:
+    """The three Example 2 figures from the run folder ``run_dir`` (fields of its coarse model) and,
+    with ``example`` and ``run``, its entry of :data:`CLAIMS_JSON` (every model of the run)."""
     from pixmuscle.io.results import load_results
 
     curves = model_curves(run_dir)
@@ -455,15 +544,36 @@ def example2_figures(run_dir: Path, out_dir: Path, prefix: str, label: str) -> l
              "reference configuration")
     disp = plot_displacement_planes(res, step, out_dir / f"{prefix}_displacement.png",
                                     title=f"{label}: in-plane displacement (paper Figure 12)\n{state}")
-    stress = plot_stress_planes(res, step, out_dir / f"{prefix}_stress.png",
-                                title=f"{label}: largest principal Cauchy stress (paper Figure 13)\n{state}")
+    ell, how = node_ellipticity(res, step)
+    zone = None if ell is None else ell.non_elliptic
+    stress = plot_stress_planes(res, step, out_dir / f"{prefix}_stress.png", non_elliptic=zone,
+                                title=f"{label}: largest principal Cauchy stress (paper Figure 13)\n{state}"
+                                      + ("" if ell is None else f"; hatched: the law is not strongly elliptic ({how})"))
+    print(f"not strongly elliptic at step {step}: {'?' if ell is None else f'{ell.count:,}'} of "
+          f"{res.model.n_nodes:,} nodes ({how}; the solve counted {(res.info or {}).get('non_elliptic_nodes')})")
+    paths_out = []
+    if example is not None and run is not None:
+        models = {curves[0]["name"]: model_claims(res, step, planes(res.model), zone)}
+        for c in curves[1:]:  # the fine model: its own fields, its solve's count (no 1-GB-per-68k recomputation)
+            other = load_results(Path(run_dir) / f"results_{c['name']}.h5")
+            k = int(np.flatnonzero(other.converged)[-1])
+            e = other.ellipticity if other.ellipticity is not None and other.ellipticity.step == k else None
+            models[c["name"]] = model_claims(other, k, planes(other.model), None if e is None else e.non_elliptic)
+        paths_out.append(write_claims(example, run_dir, models, run))
+        for name, mc in models.items():
+            sag, fib, jumps = mc["fig12_sagittal"]["all"], mc["fig12_fibres"], mc["fig13_stress_jumps"]
+            print(f"{name}: sagittal posterior distal {sag['posterior']['fraction_distal']:.3f} (mean u_z "
+                  f"{sag['posterior']['mean_uz_cm']:.3g} cm), anterior proximal {sag['anterior']['fraction_proximal']:.3f} "
+                  f"(mean u_z {sag['anterior']['mean_uz_cm']:.3g} cm); |cos(u, fibre)| {fib['mean_abs_cos']:.3f}, "
+                  f"shuffled {fib['mean_abs_cos_shuffled']:.3f}; stress jump median inside "
+                  f"{jumps['inside']['median_jump']:.3g}, interface {jumps['interface']['median_jump']:.3g} N/cm²")
     for c in curves:
         print(f"{c['name']}: {c['n_nodes']:,} nodes, F_max {np.nanmax(c['force_N']):.4g} N, status {c['status']}")
     print(f"arrows: largest |u| {disp['u_max_cm']:.3g} cm, grid {disp['step_cm']:.3g} cm, "
           f"{sum(d['n_fallback'] for k, d in disp.items() if isinstance(d, dict))} points without an RK value")
     print(f"stress on the planes {stress['min']:.3g} … {stress['max']:.3g} N/cm², colour range "
           f"{stress['vmin']:.3g} … {stress['vmax']:.3g}")
-    return [*paths, disp["path"], stress["path"]]
+    return [*paths, disp["path"], stress["path"], *paths_out]
 
 
 def main(argv=None) -> int:
@@ -473,6 +583,7 @@ def main(argv=None) -> int:
                     help="output folder of the finished run (default: the config's output_dir)")
     ap.add_argument("--out-dir", type=Path, default=FIGURES, help="where the PNGs go (default: docs/figures)")
     a = ap.parse_args(argv)
+    run = Run()
     config, prefix = EXAMPLES[a.example]
     run_dir = run_folder(ROOT / config) if a.run_dir is None else a.run_dir.resolve()
     if a.example == "mg_young_old":
@@ -481,9 +592,11 @@ def main(argv=None) -> int:
                  "stars and dotted lines: the paper's F_max at the highest activation (Table 3)")
         print(plot(curves, title, a.out_dir / f"{prefix}_force_activation.png"))
         return 0
-    label = ("Example 2, SYNTHETIC lower leg" if a.example == "lower_leg"
-             else "Example 2 small variant (NOT the paper's resolution), SYNTHETIC lower leg")
-    for p in example2_figures(run_dir, a.out_dir, prefix, label):
+    label = {"lower_leg": "Example 2, SYNTHETIC lower leg",
+             "lower_leg_elliptic": "Example 2 with a strongly elliptic muscle matrix, SYNTHETIC lower leg"}.get(
+        a.example, "Example 2 small variant (NOT the paper's resolution), SYNTHETIC lower leg")
+    claims = a.example in ("lower_leg", "lower_leg_elliptic")
+    for p in example2_figures(run_dir, a.out_dir, prefix, label, a.example if claims else None, run):
         print(p)
     return 0
 
