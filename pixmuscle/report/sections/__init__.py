@@ -9,8 +9,8 @@ declared. Sections are drawn in increasing ``order``, after the per-model compar
 the solver statistics.
 
 Sections of pixmuscle: ``activation`` (α per muscle), ``muscle_forces`` (force by muscle),
-``force_length`` (force–length curves), ``dwi`` (the DWI tensor fit) and ``bias_field`` (the MRI's
-N4 bias field).
+``force_length`` (force–length curves), ``ellipticity`` (nodes where the material law is not
+strongly elliptic), ``dwi`` (the DWI tensor fit) and ``bias_field`` (the MRI's N4 bias field).
 """
 
 from __future__ import annotations
