@@ -14,7 +14,7 @@ import scipy.sparse.linalg as spla
 from pixmuscle.errors import SolverError
 from pixmuscle.mechanics import pardiso
 from pixmuscle.mechanics.linsolve import fgmres, make_solver, multigrid, petsc
-from pixmuscle.mechanics.linsolve.mixed import PatchDivergence
+from pixmuscle.mechanics.pressure import PatchDivergence
 from pixmuscle.mechanics.solve import build_system
 from pixmuscle.verify.mechanics import _cfg, mask_model
 
@@ -61,7 +61,7 @@ def test_patch_divergence_is_the_derivative_of_the_patch_dilatation():
 def test_mixed_operator_shares_its_gradient_products():
     """The mixed operator's fused product (one gradient and one transposed-gradient product for K_d x,
     w Gᵀ q and w G x) equals the blocks applied one by one, with held single-node patches in K_d."""
-    from pixmuscle.mechanics.linsolve.mixed import _Mixed
+    from pixmuscle.mechanics.linsolve.mixed_method import MixedOperator
     from pixmuscle.mechanics.tangent import MatrixFreeTangent
 
     model, system = _system(held="own", penalty={"at": "nodes", "beta": 3.0e4})
@@ -76,7 +76,8 @@ def test_mixed_operator_shares_its_gradient_products():
     G = PatchDivergence(full.main.B, full.main.BT, state.vol.a, vol.Q[free])
     D = vol.vp[free] * vol.kbar[free]
     w = system.pressure_weight
-    A = _Mixed(Kd, G, D, w)
+    A = MixedOperator(system.displacement_operator(state, tangent=full), system.patch_divergence(state, free),
+                      w * w / D, w)
     x, q = rng.standard_normal(3 * model.n_nodes), rng.standard_normal(free.size)
     ref = np.concatenate([Kd @ x + w * G.T(q), w * (G @ x) - w * w / D * q])
     assert np.allclose(A @ np.concatenate([x, q]), ref, rtol=0, atol=1e-12 * np.abs(ref).max())
@@ -379,7 +380,7 @@ def test_region_solves_are_exact_on_their_regions_and_take_the_stiff_penalty():
 def test_probed_schur_diagonal_is_exact_when_every_patch_has_its_own_colour():
     """On a body of 2 × 2 × 2 patch boxes the 8 parity colours give every patch its own colour, so
     the probed diagonal equals the diagonal of the dense G M Gᵀ (M: the exact inverse of K_d)."""
-    from pixmuscle.mechanics.linsolve.mixed import probed_schur_diagonal
+    from pixmuscle.mechanics.linsolve.mixed_method import probed_schur_diagonal
     from pixmuscle.verify.mechanics import mask_model
 
     model = mask_model(np.ones((4, 4, 6), bool), (0.15, 0.15, 0.4), tissue=1,
@@ -410,7 +411,7 @@ def test_probed_schur_diagonal_stays_bounded_where_far_couplings_add_up():
     the plain colour sum (A 1_c)_p adds every same-colour coupling of p, which grows with the grid
     (median error 50 % on 8³ boxes, 64 % on 10³); with random signs within each colour the probe
     stays near the exact diagonal of the dense matrix, and nearer with 27 colours than with 8."""
-    from pixmuscle.mechanics.linsolve.mixed import probed_schur_diagonal
+    from pixmuscle.mechanics.linsolve.mixed_method import probed_schur_diagonal
 
     class Identity:  # G = I, so the probe estimates diag(A)
         def __matmul__(self, x):

@@ -29,10 +29,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..assembly import strong_entries
+from ..rows import RowAssembler
 from ..tangent import RowProduct
 from ..threaded import ThreadedCSR
 from .factorization import ENGINES, engine_name
-from .rows import RowAssembler
 
 #: a node enters the region of a constraint point where its shape function there is at least this
 #: fraction of the point's largest; 0: every node of the point's support

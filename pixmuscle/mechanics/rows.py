@@ -7,7 +7,8 @@ node (and, with the projected energy, every cell of the patches among them): the
 a halo of about one support radius. :class:`RowAssembler` builds the block pattern of the owned
 rows with :class:`~pixmuscle.mechanics.assembly.Assembler` on the restricted cell–node support
 (``rows``: the halo rows are never formed, so the memory is that of the owned rows) and fills it
-with the same kernels as the whole tangent.
+with the same kernels as the whole tangent. The system hands them to the solvers
+(:meth:`~pixmuscle.mechanics.system.MechanicalSystem.owned_rows`).
 """
 
 from __future__ import annotations
@@ -15,12 +16,12 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..assembly import Assembler
-from ..stabilization import gradient_differences, second_moments, stabilization_modulus
+from .assembly import Assembler
+from .stabilization import gradient_differences, second_moments, stabilization_modulus
 
 
 class RowAssembler:
-    """Tangent rows of the owned nodes of a :class:`~pixmuscle.mechanics.solve.MechanicalSystem`.
+    """Tangent rows of the owned nodes of a :class:`~pixmuscle.mechanics.system.MechanicalSystem`.
 
     Parameters
     ----------
@@ -86,7 +87,7 @@ class RowAssembler:
         """The owned rows of the tangent at ``state``: CSR (3n × 3N), rows in the order of ``owned``, N/cm.
 
         With ``pressure_free`` (projected volumetric energy): the rows of the displacement block K_d
-        of the mixed form instead (:meth:`~pixmuscle.mechanics.solve.MechanicalSystem.stiffness`).
+        of the mixed form instead (:meth:`~pixmuscle.mechanics.system.MechanicalSystem.stiffness`).
         """
         return self.asm.matrix(self._data(state, pressure_free)).tocsr()[self._rows]
 
@@ -119,7 +120,7 @@ class RowAssembler:
         data = self._constant()
         vol = self.system.volumetric
         pressure_free = pressure_free and vol is not None
-        A = self.system._held_volumetric(state, state.A) if pressure_free else state.A
+        A = self.system.held_volumetric(state, state.A) if pressure_free else state.A
         self.asm.fill(self.g, A[self.cells], self.volume, out=data)
         if vol is not None and not pressure_free:
             wv = (vol.volume / vol.vp[vol.patch_of])[self.cells]
