@@ -193,11 +193,11 @@ def test_mixed_solve_rebuilds_a_stale_preconditioner_within_the_solve():
     solver = make_solver("mixed_amg", model.X, ijk=model.ijk, rtol=1e-10, rebuild_cost=2)
     solver.prepare(system, s0)
     d = solver.solve(s0.r.ravel(), rtol=1e-8).reshape(-1, 3)
-    rate = solver._rate0
+    rate = solver.policy.rate0
     assert solver.info["preconditioner_builds"] == 1 and rate > 1.0
     s1 = system.evaluate(d, 0.5, 0.6)
     solver.prepare(system, s1)
-    solver._rate0 = 0.1  # as if the kept hierarchy had been far better right after its build
+    solver.policy.rate0 = 0.1  # as if the kept hierarchy had been far better right after its build
     r = s1.r.ravel()
     x = solver.solve(r, rtol=1e-8)
     assert solver.info["preconditioner_builds"] == 2
@@ -205,12 +205,12 @@ def test_mixed_solve_rebuilds_a_stale_preconditioner_within_the_solve():
     assert len(build_s) == 2 and min(build_s) >= 0.0
     budget = int(np.ceil(0.1 * 8 + 2))
     continued = solver.info["iterations"] - budget
-    assert continued > 0 and solver._rate0 is None
+    assert continued > 0 and solver.policy.rate0 is None
     K = system.stiffness(s1).tocsc()
     assert np.linalg.norm(K @ x - r) <= 1e-8 * np.linalg.norm(r)
     x = solver.solve(r, rtol=1e-8)  # the same system from zero, with the same new hierarchy: sets its rate
     cold = solver.info["iterations"]
-    assert continued < cold and solver._rate0 == pytest.approx(cold / 8)
+    assert continued < cold and solver.policy.rate0 == pytest.approx(cold / 8)
     assert np.linalg.norm(K @ x - r) <= 1e-8 * np.linalg.norm(r)
 
 

@@ -316,16 +316,16 @@ class MixedBlockSolver(KrylovAMGSolver):
         it and go on from the iterate reached (a restart from zero would throw its residual
         reduction away). Returns (z, iterations, status, iterations of the stale preconditioner)."""
         A, P = self._mixed
-        z, its, status = fgmres(A, rhs, P, target, self._budget(rtol), restart=self.restart, check=check,
+        z, its, status = fgmres(A, rhs, P, target, self.policy.budget(rtol), restart=self.restart, check=check,
                                 flexible=False)
-        if status != "maxiter" or self._fresh or its >= self.maxiter:
+        if not self.policy.may_rebuild(status, its):
             return z, its, status, 0
         _LOG.debug("FGMRES: %d iterations with a kept preconditioner cost more than a rebuild; rebuilding it", its)
         self._build()
         self._refresh()
         if on_rebuild is not None:
             on_rebuild()
-        z, more, status = fgmres(A, rhs, P, target, self._retry_budget(rtol, its), restart=self.restart,
+        z, more, status = fgmres(A, rhs, P, target, self.policy.retry_budget(rtol, its), restart=self.restart,
                                  x0=z, check=check, flexible=False)
         return z, its + more, status, its
 
@@ -337,5 +337,5 @@ class MixedBlockSolver(KrylovAMGSolver):
         if status != "converged":
             raise self._fail("FGMRES", status, total, rtol)
         if not stale:  # a solve continued after a rebuild does not show the new hierarchy's rate: the next one does
-            self._account(total, rtol)
+            self.policy.account(total, rtol)
 

@@ -75,7 +75,7 @@ A condensed update (:meth:`PETScMixedSolver.solve`) asks for a relative residual
 mixed iterate, r − K Δd = r₁ + Gᵀ (D/w) r₂, can exceed the mixed one by up to K/μ (the pressure rows
 are weighted by D/w). So the mixed system is solved to the requested tolerance, the condensed
 residual of the update is computed with the matrix-free condensed tangent (replicated on every rank,
-:meth:`~pixmuscle.mechanics.solve.MechanicalSystem.tangent_operator`), and while it is too large the
+:meth:`~pixmuscle.mechanics.system.MechanicalSystem.tangent_operator`), and while it is too large the
 update is refined: a new mixed solve for the condensed residual so far, to a target tightened by the
 lag (condensed residual per mixed residual) the previous pass showed, at most eight passes.
 
