@@ -190,6 +190,7 @@ class MechanicalSystem:
         per integration cell (built once)."""
         if self._support is None:
             self._support = support_pattern(face_incidence(self.scni.faces, self.scni.volume), self.scni.psi_faces)
+            self.scni.psi_faces = None  # its structure was all that is needed again (0.36 GB at 295k nodes)
         return self._support
 
     def assembler(self, reach: int | None = None, patches: bool = True) -> Assembler:
