@@ -316,8 +316,8 @@ def test_region_solves_are_exact_on_their_regions_and_take_the_stiff_penalty():
     (1000 times the default number: on this 224-node body the default one does not yet slow the
     V-cycle) the mixed solve needs far fewer iterations with the region solves than without (pyamg:
     39 against 83; BoomerAMG: 47 against none in 3,000)."""
-    from pixmuscle.mechanics.rows import RowAssembler
     from pixmuscle.mechanics.linsolve.subdomains import RegionSolves, constraint_regions
+    from pixmuscle.mechanics.rows import RowAssembler
 
     model, system = _system(held="patch", penalty={"factor": 1000.0})
     state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.5, 0.6)
