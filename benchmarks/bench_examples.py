@@ -18,7 +18,7 @@ measured outside the pipeline, which does not store them.
 
 Run:  .venv/bin/python benchmarks/bench_examples.py EXAMPLE [--until coarsen]
       .venv/bin/python benchmarks/bench_examples.py EXAMPLE --from-run DIR [--wall-s S] [--peak-rss-gb G] [--load-avg A B]
-      EXAMPLE: lower_leg_small, lower_leg, mg_young_old_small, mg_young_old
+      EXAMPLE: lower_leg_small, lower_leg, mg_young_old_small, mg_young_old, uncertainty, mg_young_old_uncertainty
 Each run is merged into benchmarks/results/bench_examples.json; bench_examples.md is rewritten from it.
 """
 
@@ -49,6 +49,7 @@ EXAMPLES = {
     "mg_young_old_small": "configs/mg_young_old_small.yaml",
     "mg_young_old": "configs/mg_young_old.yaml",
     "uncertainty": "configs/uncertainty.yaml",
+    "mg_young_old_uncertainty": "configs/mg_young_old_uncertainty.yaml",
 }
 
 
@@ -167,12 +168,15 @@ def run(example: str, until: str | None) -> dict:
     rec["models_nodes"] = _models(out)
     rec["models"] = _model_records(out, since=t_start)
     rec["reports"] = _outcome(out, since=t_start)
-    summary = out / "uncertainty.json"
-    if summary.is_file() and summary.stat().st_mtime >= t_start:   # an uncertainty study: its interval
-        u = json.loads(summary.read_text())
-        rec["uncertainty"] = {k: u.get(k) for k in ("realisations", "F_max_mean_N", "F_max_sd_N", "ci95_low_N", "ci95_high_N",
-                                                    "noise_free_F_max_N", "noise_free_inside", "shift_N", "shift_percent",
-                                                    "config")}
+    keys = ("realisations", "F_max_mean_N", "F_max_sd_N", "ci95_low_N", "ci95_high_N", "noise_free_F_max_N",
+            "noise_free_inside", "shift_N", "shift_percent", "force_per_muscle_volume_mean_N_per_cm3",
+            "force_per_muscle_volume_ci95_low_N_per_cm3", "force_per_muscle_volume_ci95_high_N_per_cm3",
+            "noise_free_force_per_muscle_volume_N_per_cm3", "config")
+    for summary in [out / "uncertainty.json", *sorted(out.glob("*/uncertainty.json"))]:
+        if summary.is_file() and summary.stat().st_mtime >= t_start:   # an uncertainty study: its interval
+            u = json.loads(summary.read_text())
+            key = "uncertainty" if summary.parent == out else f"uncertainty {summary.parent.name}"
+            rec[key] = {k: u.get(k) for k in keys}
     rec["status"] = _status(rec)
     return rec
 

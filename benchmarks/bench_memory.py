@@ -15,7 +15,10 @@ hierarchy, Python objects, the allocator's free pages — is the difference betw
 the owners' sum (``not_numpy_GB``).
 
 Run: ``python benchmarks/bench_memory.py 75k 295k``; writes ``benchmarks/results/bench_memory.json`` (one
-row per size, GB per phase and per owner; a size measured again replaces its row).
+row per size, GB per phase and per owner; a size measured again replaces its row). A smaller leg
+(``5k``, ``10k``, ``20k``: the sizes of :mod:`bench_solve`) measures the same owners in under a minute;
+``--out PATH`` writes such a trial elsewhere and ``--depth`` lists the owners deeper down their paths
+(``solver._M.regions.parts[0].asm.g`` at depth 6).
 """
 
 from __future__ import annotations
@@ -113,7 +116,7 @@ def owners(roots: dict, depth: int = 4) -> dict[str, int]:
     return out
 
 
-def measure(size: str) -> dict:
+def measure(size: str, depth: int = 4) -> dict:
     from pixmuscle.mechanics.linsolve import make_solver
     from pixmuscle.mechanics.linsolve.amg_processes import workers_peak_rss_kb
     from pixmuscle.mechanics.solve import build_system
@@ -142,10 +145,11 @@ def measure(size: str) -> dict:
     else:
         phase("solve", lambda: solver.solve(state.r.ravel()))
     iterations = int(solver.info["iterations"])
-    by_owner = owners({"model": model, "system": system, "state": state, "solver": solver})
+    by_owner = owners({"model": model, "system": system, "state": state, "solver": solver}, depth=depth)
     rss = _status_kb("VmRSS") * 1024.0
     top = {k: v for k, v in by_owner.items() if "." not in k and "[" not in k}
-    detail = {k: round(v / GB, 3) for k, v in sorted(by_owner.items(), key=lambda kv: -kv[1]) if v >= 0.01 * GB}
+    floor = min(0.01 * GB, 0.002 * sum(top.values()))  # 10 MB, or 0.2 % of the owners on a small leg
+    detail = {k: round(v / GB, 4) for k, v in sorted(by_owner.items(), key=lambda kv: -kv[1]) if v >= floor}
     workers = [kb / 1024**2 for kb in workers_peak_rss_kb()]
     dofs = 3 * model.n_nodes
     peak = max(p["peak_GB"] for p in phases)
@@ -164,12 +168,14 @@ def measure(size: str) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sizes", nargs="+", choices=sorted(SIZES))
+    ap.add_argument("--out", type=Path, default=OUT, help="results file (default: the records' %(default)s)")
+    ap.add_argument("--depth", type=int, default=4, help="deepest attribute path listed per owner (default 4)")
     a = ap.parse_args(argv)
-    old = json.loads(OUT.read_text())["cases"] if OUT.exists() else []
+    old = json.loads(a.out.read_text())["cases"] if a.out.exists() else []
     for size in a.sizes:
-        row = measure(size)
+        row = measure(size, a.depth)
         old = [r for r in old if r["size"] != size] + [row]
-        OUT.write_text(json.dumps({"cases": old}, indent=2) + "\n")
+        a.out.write_text(json.dumps({"cases": old}, indent=2) + "\n")
     return 0
 
 

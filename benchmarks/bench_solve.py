@@ -457,7 +457,7 @@ def infsup(size: str, penalty: float | None, patch=(1, 1, 3), held: str = "press
     import scipy.linalg as sl
     import scipy.sparse as sp
 
-    from pixmuscle.mechanics.linsolve.mixed import PatchDivergence
+    from pixmuscle.mechanics.pressure import PatchDivergence
     from pixmuscle.mechanics.solve import build_system
     from pixmuscle.mechanics.volumetric import shear_moduli
 

@@ -207,6 +207,73 @@ def example3(key: str = "mg_young_old") -> str:
     return "\n".join(lines + [""] + _example_head(r, key))
 
 
+#: what each Example 3 candidate changes (bench_example3.py's CASES), for the table
+EXAMPLE3_CANDIDATES = {
+    "shipped": "the old MG with the architecture of Narici et al. 2003 (pennation 21.75° against 25°, fascicles −10 %)",
+    "baseline": "the old MG with the young architecture; every other row changes one thing against this one",
+    "a_dti_noise": "(a) fibres from noisy DTI: young at SNR 25, old at the SNR its fat fraction leaves",
+    "b_subvoxel_fat": "(b) fat below the voxel size: contractile fraction 1 − f, f = 6.7 % young, 11.9 % old",
+    "b_subvoxel_fat_needed": "(b) as above, with the old f that would give 87.7 % alone",
+    "c_imct_series": "(c) IMCT sheets normal to the fibres (in series) in both subjects",
+    "c_imct_series_compliant": "(c) as above, connective tissue as compliant as fat",
+    "c_imct_parallel_compliant": "the baseline's sheets (in parallel), connective tissue as compliant as fat",
+    "d_outer_layer": "(d) outer layer (aponeurosis and skin) at the paper's implied 37.3 / 31.2 cm³",
+}
+
+
+def example3_candidates() -> str:
+    """Example 3's old/young force per muscle volume, one candidate at a time (bench_example3.json)."""
+    path = "benchmarks/results/bench_example3.json"
+    if not (ROOT / path).exists():
+        return "No record yet: `.venv/bin/python benchmarks/bench_example3.py`."
+    r = _load(path)
+    lines = ["| candidate | what it changes | nodes young / old | F_max young / old [N] | old / young, F_max per "
+             "muscle volume |", "|---|---|---|---|---|"]
+    for c in r["cases"]:
+        y, o = c["subjects"]["young"], c["subjects"]["old"]
+        what = EXAMPLE3_CANDIDATES.get(c["candidate"], "")
+        f = o["changed"].get("subvoxel_fat_fraction")
+        if c["candidate"] == "b_subvoxel_fat_needed" and f is not None:
+            what = what.replace("the old f", f"the old f = {100 * f:.1f} %")
+        if c["candidate"] == "a_dti_noise":
+            what += (f" (SNR {y['changed']['dti_snr']:g} / {o['changed']['dti_snr']:g}, mean fibre error "
+                     f"{y['changed']['mean_fibre_angle_error_deg']:.1f}° / {o['changed']['mean_fibre_angle_error_deg']:.1f}°)")
+        lines.append(f"| `{c['candidate']}` | {what} | {c['nodes']['young']:,} / {c['nodes']['old']:,} | "
+                     f"{y['F_max_N']:.1f} / {o['F_max_N']:.1f} | **{c['ratio_force_per_muscle_volume']:.1f} %** |")
+    loads = [c["load_average"]["before"][0] for c in r["cases"]]
+    lines += ["", f"Paper: **{r['paper_ratio_force_per_muscle_volume']:.1f} %**. Record `{path}`, rows made by "
+                  f"`.venv/bin/python benchmarks/bench_example3.py --cases NAME` at {_made(r['cases'][-1])} "
+                  f"({r['cases'][0]['utc'][:10]}, load average {min(loads):.1f}–{max(loads):.1f} at their starts)."]
+    return "\n".join(lines)
+
+
+def example3_uncertainty(key: str = "mg_young_old_uncertainty") -> str:
+    """Example 3's force per muscle volume with its 95 % prediction interval per subject (bench_examples.json)."""
+    r = _example(key)
+    if r is None:
+        return f"No record yet: `.venv/bin/python benchmarks/bench_examples.py {key}`."
+    lines = ["| subject | realisations | F_max noise-free | F_max mean [95 % interval] | F_max / muscle volume "
+             "noise-free | mean [95 % interval] |", "|---|---|---|---|---|---|"]
+    u = {k.split(" ", 1)[1]: v for k, v in r.items() if k.startswith("uncertainty ")}
+    for s in ("young", "old"):
+        if s not in u:
+            continue
+        q = u[s]
+        lines.append(f"| {s} | {q['realisations']} | {q['noise_free_F_max_N']:.1f} N | {q['F_max_mean_N']:.1f} "
+                     f"[{q['ci95_low_N']:.1f}, {q['ci95_high_N']:.1f}] N | "
+                     f"{q['noise_free_force_per_muscle_volume_N_per_cm3']:.3f} N/cm³ | "
+                     f"{q['force_per_muscle_volume_mean_N_per_cm3']:.3f} "
+                     f"[{q['force_per_muscle_volume_ci95_low_N_per_cm3']:.3f}, "
+                     f"{q['force_per_muscle_volume_ci95_high_N_per_cm3']:.3f}] N/cm³ |")
+    if {"young", "old"} <= set(u):
+        y, o = u["young"], u["old"]
+        lines += ["", f"Old / young, force per muscle volume: noise-free "
+                      f"{100 * o['noise_free_force_per_muscle_volume_N_per_cm3'] / y['noise_free_force_per_muscle_volume_N_per_cm3']:.1f} %, "
+                      f"of the realisations' means "
+                      f"{100 * o['force_per_muscle_volume_mean_N_per_cm3'] / y['force_per_muscle_volume_mean_N_per_cm3']:.1f} %."]
+    return "\n".join(lines + _example_head(r, key))
+
+
 def bias_field() -> str:
     """Segmentation Dice under a bias field, with and without N4 (bench_bias_field.json)."""
     r = _load("benchmarks/results/bench_bias_field.json")
@@ -253,7 +320,8 @@ TABLES = {"sweeps": sweeps, "sweeps-other": sweeps_other, "first-system": first_
           "example2": example2, "example3": example3, "bias-field": bias_field,
           "memory": memory, "example2-small": lambda: example2("lower_leg_small"),
           "example2-elliptic": lambda: example2("lower_leg_elliptic"),
-          "example3-small": lambda: example3("mg_young_old_small")}
+          "example3-small": lambda: example3("mg_young_old_small"),
+          "example3-candidates": example3_candidates, "example3-uncertainty": example3_uncertainty}
 
 
 def render(text: str) -> str:

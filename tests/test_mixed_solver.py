@@ -14,7 +14,7 @@ import scipy.sparse.linalg as spla
 from pixmuscle.errors import SolverError
 from pixmuscle.mechanics import pardiso
 from pixmuscle.mechanics.linsolve import fgmres, make_solver, multigrid, petsc
-from pixmuscle.mechanics.linsolve.mixed import PatchDivergence
+from pixmuscle.mechanics.pressure import PatchDivergence
 from pixmuscle.mechanics.solve import build_system
 from pixmuscle.verify.mechanics import _cfg, mask_model
 
@@ -61,7 +61,7 @@ def test_patch_divergence_is_the_derivative_of_the_patch_dilatation():
 def test_mixed_operator_shares_its_gradient_products():
     """The mixed operator's fused product (one gradient and one transposed-gradient product for K_d x,
     w Gᵀ q and w G x) equals the blocks applied one by one, with held single-node patches in K_d."""
-    from pixmuscle.mechanics.linsolve.mixed import _Mixed
+    from pixmuscle.mechanics.linsolve.mixed_method import MixedOperator
     from pixmuscle.mechanics.tangent import MatrixFreeTangent
 
     model, system = _system(held="own", penalty={"at": "nodes", "beta": 3.0e4})
@@ -76,7 +76,8 @@ def test_mixed_operator_shares_its_gradient_products():
     G = PatchDivergence(full.main.B, full.main.BT, state.vol.a, vol.Q[free])
     D = vol.vp[free] * vol.kbar[free]
     w = system.pressure_weight
-    A = _Mixed(Kd, G, D, w)
+    A = MixedOperator(system.displacement_operator(state, tangent=full), system.patch_divergence(state, free),
+                      w * w / D, w)
     x, q = rng.standard_normal(3 * model.n_nodes), rng.standard_normal(free.size)
     ref = np.concatenate([Kd @ x + w * G.T(q), w * (G @ x) - w * w / D * q])
     assert np.allclose(A @ np.concatenate([x, q]), ref, rtol=0, atol=1e-12 * np.abs(ref).max())
@@ -192,11 +193,11 @@ def test_mixed_solve_rebuilds_a_stale_preconditioner_within_the_solve():
     solver = make_solver("mixed_amg", model.X, ijk=model.ijk, rtol=1e-10, rebuild_cost=2)
     solver.prepare(system, s0)
     d = solver.solve(s0.r.ravel(), rtol=1e-8).reshape(-1, 3)
-    rate = solver._rate0
+    rate = solver.policy.rate0
     assert solver.info["preconditioner_builds"] == 1 and rate > 1.0
     s1 = system.evaluate(d, 0.5, 0.6)
     solver.prepare(system, s1)
-    solver._rate0 = 0.1  # as if the kept hierarchy had been far better right after its build
+    solver.policy.rate0 = 0.1  # as if the kept hierarchy had been far better right after its build
     r = s1.r.ravel()
     x = solver.solve(r, rtol=1e-8)
     assert solver.info["preconditioner_builds"] == 2
@@ -204,12 +205,12 @@ def test_mixed_solve_rebuilds_a_stale_preconditioner_within_the_solve():
     assert len(build_s) == 2 and min(build_s) >= 0.0
     budget = int(np.ceil(0.1 * 8 + 2))
     continued = solver.info["iterations"] - budget
-    assert continued > 0 and solver._rate0 is None
+    assert continued > 0 and solver.policy.rate0 is None
     K = system.stiffness(s1).tocsc()
     assert np.linalg.norm(K @ x - r) <= 1e-8 * np.linalg.norm(r)
     x = solver.solve(r, rtol=1e-8)  # the same system from zero, with the same new hierarchy: sets its rate
     cold = solver.info["iterations"]
-    assert continued < cold and solver._rate0 == pytest.approx(cold / 8)
+    assert continued < cold and solver.policy.rate0 == pytest.approx(cold / 8)
     assert np.linalg.norm(K @ x - r) <= 1e-8 * np.linalg.norm(r)
 
 
@@ -316,6 +317,7 @@ def test_region_solves_are_exact_on_their_regions_and_take_the_stiff_penalty():
     V-cycle) the mixed solve needs far fewer iterations with the region solves than without (pyamg:
     39 against 83; BoomerAMG: 47 against none in 3,000)."""
     from pixmuscle.mechanics.linsolve.subdomains import RegionSolves, constraint_regions
+    from pixmuscle.mechanics.rows import RowAssembler
 
     model, system = _system(held="patch", penalty={"factor": 1000.0})
     state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.5, 0.6)
@@ -328,7 +330,7 @@ def test_region_solves_are_exact_on_their_regions_and_take_the_stiff_penalty():
     x = rng.standard_normal(Kd.shape[0])
     for part in solves.parts:
         assert np.abs(part.apply(x.reshape(-1, 3)).ravel() - (Kd @ x)[part.dofs]).max() <= 1e-12 * np.abs(Kd @ x).max()
-        block = part.asm.block(state, pressure_free=True)
+        block = RowAssembler(system, part.nodes, square=True).block(state, pressure_free=True)
         assert abs(block - Kd[part.dofs][:, part.dofs]).max() <= 1e-12 * abs(Kd).max()
     # with held single-node patches, whose volumetric terms stay in K_d, and their own region
     model_own, system_own = _system(held="own", penalty={"at": "nodes", "beta": 3.0e4})
@@ -341,7 +343,7 @@ def test_region_solves_are_exact_on_their_regions_and_take_the_stiff_penalty():
     assert len(own.parts) == 3 and vol.held.any()
     for part in own.parts:
         assert np.abs(part.apply(x.reshape(-1, 3)).ravel() - y[part.dofs]).max() <= 1e-12 * np.abs(y).max()
-        block = part.asm.block(state_own, pressure_free=True)
+        block = RowAssembler(system_own, part.nodes, square=True).block(state_own, pressure_free=True)
         assert abs(block - Kd_own[part.dofs][:, part.dofs]).max() <= 1e-12 * abs(Kd_own).max()
     r = rng.standard_normal(Kd.shape[0])
     z = solves.correct(r, np.zeros_like(r))
@@ -379,7 +381,7 @@ def test_region_solves_are_exact_on_their_regions_and_take_the_stiff_penalty():
 def test_probed_schur_diagonal_is_exact_when_every_patch_has_its_own_colour():
     """On a body of 2 × 2 × 2 patch boxes the 8 parity colours give every patch its own colour, so
     the probed diagonal equals the diagonal of the dense G M Gᵀ (M: the exact inverse of K_d)."""
-    from pixmuscle.mechanics.linsolve.mixed import probed_schur_diagonal
+    from pixmuscle.mechanics.linsolve.mixed_method import probed_schur_diagonal
     from pixmuscle.verify.mechanics import mask_model
 
     model = mask_model(np.ones((4, 4, 6), bool), (0.15, 0.15, 0.4), tissue=1,
@@ -410,7 +412,7 @@ def test_probed_schur_diagonal_stays_bounded_where_far_couplings_add_up():
     the plain colour sum (A 1_c)_p adds every same-colour coupling of p, which grows with the grid
     (median error 50 % on 8³ boxes, 64 % on 10³); with random signs within each colour the probe
     stays near the exact diagonal of the dense matrix, and nearer with 27 colours than with 8."""
-    from pixmuscle.mechanics.linsolve.mixed import probed_schur_diagonal
+    from pixmuscle.mechanics.linsolve.mixed_method import probed_schur_diagonal
 
     class Identity:  # G = I, so the probe estimates diag(A)
         def __matmul__(self, x):

@@ -16,7 +16,8 @@ from pixmuscle.config import parse_section
 from pixmuscle.mechanics.config import SolveConfig
 from pixmuscle.mechanics.ellipticity import directions
 from pixmuscle.mechanics.node_ellipticity import results_ellipticity, state_acoustic_minimum
-from pixmuscle.mechanics.solve import model_scni, solve, solve_materials
+from pixmuscle.mechanics.solve import solve
+from pixmuscle.mechanics.system import model_scni, solve_materials
 from pixmuscle.verify.mechanics import mask_model
 
 FIBER = np.array([np.sin(np.deg2rad(25.0)), 0.0, np.cos(np.deg2rad(25.0))])

@@ -19,7 +19,7 @@ from pixmuscle.io.model import save_model
 from pixmuscle.io.results import load_results
 from pixmuscle.mechanics.config import SolveConfig
 from pixmuscle.mechanics.linsolve import petsc
-from pixmuscle.mechanics.linsolve.rows import RowAssembler
+from pixmuscle.mechanics.rows import RowAssembler
 from pixmuscle.mechanics.solve import build_system, solve
 from pixmuscle.verify.mechanics import _cfg, mask_model
 

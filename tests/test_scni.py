@@ -295,6 +295,44 @@ def test_threaded_csr_product_is_the_serial_product_bit_for_bit():
     assert ThreadedCSR(A[:10], threads=4).threads == 1  # too small to split
 
 
+def test_unstored_operators_equal_the_stored_ones_whatever_the_threads():
+    """Operators that store less than the matrix they apply — Bᵀ on B's arrays (:class:`TransposedCSR`),
+    a symmetric matrix by its upper triangle (:class:`SymmetricCSR`: products, rows, the whole matrix),
+    rows of a CSR matrix without their copy (:class:`RowSubset`), the SCNI gradients as row views of
+    their stack — equal the stored matrices' products to 1e-13, bit for bit on one thread and on all."""
+    import numba
+    import scipy.sparse as sp
+
+    from pixmuscle.mechanics.scni import StackedRows
+    from pixmuscle.mechanics.tangent import RowSubset, SymmetricCSR, TransposedCSR
+
+    rng = np.random.default_rng(5)
+    n = 2000
+    per_row = rng.integers(0, 120, n)
+    rows = np.repeat(np.arange(n), per_row)
+    A = sp.csr_matrix((rng.standard_normal(rows.size), (rows, rng.integers(0, n, rows.size))), shape=(n, n))
+    L = (A + A.T + sp.identity(n)).tocsr()
+    X, x = rng.standard_normal((n, 3)), rng.standard_normal(n)
+    nodes = np.sort(rng.choice(n, 300, replace=False))
+    S = SymmetricCSR(L)
+    assert S.nnz < 0.6 * L.nnz and abs(S.matrix - L).max() == 0.0 and abs(S.rows_matrix(nodes)[nodes] - L[nodes]).max() == 0.0
+    saved = numba.get_num_threads()
+    got = []
+    try:
+        for k in sorted({1, saved}):
+            numba.set_num_threads(k)
+            out = [TransposedCSR(A) @ X, S @ X, S @ x, S.rows(nodes)(X), RowSubset(L, nodes) @ X, RowSubset(L, nodes) @ x]
+            for y, ref in zip(out, [A.T @ X, L @ X, L @ x, L[nodes] @ X, L[nodes] @ X, L[nodes] @ x], strict=True):
+                assert np.abs(y - ref).max() <= 1e-13 * np.abs(ref).max()
+            got.append(out)
+    finally:
+        numba.set_num_threads(saved)
+    assert all(np.array_equal(a, b) for a, b in zip(got[0], got[-1], strict=True))
+    G = StackedRows([A[:700], A[700:], A[:5]])
+    assert all(np.shares_memory(M.data, G.stacked.data) for M in G)
+    assert abs(sp.vstack(list(G)) - G.stacked).max() == 0.0 and abs(G[1] - A[700:]).max() == 0.0
+
+
 def test_threaded_fill_adds_the_same_blocks_as_one_thread():
     """The fills split the block rows among threads (each adds to its own rows only): the tangent
     comes out bit for bit as on one thread, for the whole pattern and for the square block of a

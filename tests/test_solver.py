@@ -381,30 +381,30 @@ def test_cg_amg_rebuilds_when_stale_iterations_cost_a_build():
     s = KrylovAMGSolver(model.X, model.ijk, rebuild_cost=10**6)
     s.prepare(system, state)
     s.solve(np.zeros_like(r), rtol=1e-8)  # solved without an iteration: shows no rate (it was taken as 1 per decade)
-    assert s.info["iterations"] == 0 and s._rate0 is None
+    assert s.info["iterations"] == 0 and s.policy.rate0 is None
     s.solve(r, rtol=1e-8)
     its = s.info["iterations"]
-    assert s.info["preconditioner_builds"] == 1 and s._rate0 == pytest.approx(its / 8)
-    s._rate0 = 0.1  # pretend the hierarchy was much better right after its build: every solve now costs extra
+    assert s.info["preconditioner_builds"] == 1 and s.policy.rate0 == pytest.approx(its / 8)
+    s.policy.rate0 = 0.1  # pretend the hierarchy was much better right after its build: every solve now costs extra
     s.solve(r, rtol=1e-8)
     s.prepare(system, state)
-    assert s.info["preconditioner_builds"] == 1 and s._excess == pytest.approx(its - 0.8)  # a build costs far more
-    s.rebuild_cost = its - 1  # the next solve's extra iterations exceed a build: rebuilt at the next prepare
-    s._excess = 0.0
+    assert s.info["preconditioner_builds"] == 1 and s.policy.excess == pytest.approx(its - 0.8)  # a build costs far more
+    s.policy.rebuild_cost = its - 1  # the next solve's extra iterations exceed a build: rebuilt at the next prepare
+    s.policy.excess = 0.0
     x = s.solve(r, rtol=1e-8)
-    assert s.info["preconditioner_builds"] == 1 and s._stale
+    assert s.info["preconditioner_builds"] == 1 and s.policy.stale
     s.prepare(system, state)
-    assert s.info["preconditioner_builds"] == 2 and not s._stale
+    assert s.info["preconditioner_builds"] == 2 and not s.policy.stale
     assert np.linalg.norm(K @ x - r) <= 1e-8 * np.linalg.norm(r) * 1.01
     # within a solve: 0.8 predicted + its/2 of budget, then a rebuild, and CG goes on from its
     # iterate with the new hierarchy, well short of a full solve; the next solve sets the new rate
     s.solve(r, rtol=1e-8)  # fresh: sets the rate
-    s._rate0, s.rebuild_cost = 0.1, its // 2
+    s.policy.rate0, s.policy.rebuild_cost = 0.1, its // 2
     stale = its // 2 + 1
     s.prepare(system, state)  # keeps the hierarchy
     x = s.solve(r, rtol=1e-8)
     assert s.info["preconditioner_builds"] == 3 and stale < s.info["iterations"] < stale + 0.8 * its
-    assert s._rate0 is None
+    assert s.policy.rate0 is None
     assert np.linalg.norm(K @ x - r) <= 1e-8 * np.linalg.norm(r) * 1.01
 
 
@@ -423,11 +423,11 @@ def test_a_fresh_hierarchy_gives_up_on_a_system_far_harder_than_the_earlier_ones
     s.prepare(system, state)
     s.solve(r, rtol=1e-8)  # no rate known yet: up to maxiter
     its = s.info["iterations"]
-    s._stale = True
+    s.policy.stale = True
     s.prepare(system, state)  # a fresh hierarchy of the same tangent: within 4 × the rate
     s.solve(r, rtol=1e-8)
     assert s.info["preconditioner_builds"] == 2 and s.info["iterations"] == its
-    s.give_up, s._stale = 0.1, True  # now the same system counts as ten times harder than allowed
+    s.policy.give_up, s.policy.stale = 0.1, True  # now the same system counts as ten times harder than allowed
     s.prepare(system, state)
     with pytest.raises(SolverGaveUp, match="gave up after .* far more than the earlier ones"):
         s.solve(r, rtol=1e-8)

@@ -137,6 +137,25 @@ def test_mg_old_vs_young_muscle_volume():
     assert abs((o["muscle"] / y["muscle"]) / ratio - 1) < 0.10
 
 
+def test_mg_tissue_ratios_and_aponeurosis():
+    """Given ratios are the phantom's IMCT/muscle and IMAT/muscle (voxel-centre quantiles), and a thicker
+    aponeurosis adds outer connective tissue without changing the muscle."""
+    base = make_mg_phantom("young", **MG, seed=5)
+    v0 = tissue_volumes(base)
+    p = make_mg_phantom("young", **MG, seed=5, tissue_ratios={"imct_per_muscle": 0.40, "imat_per_muscle": 0.05},
+                        aponeurosis_cm=0.24)
+    v = tissue_volumes(p)
+    assert abs(v["imct"] / v["muscle"] / 0.40 - 1) < 0.10 and abs(v["imat"] / v["muscle"] / 0.05 - 1) < 0.10
+    assert v["outer_ct"] > 1.3 * v0["outer_ct"]
+    thick = tissue_volumes(make_mg_phantom("young", **MG, seed=5, aponeurosis_cm=0.24))
+    assert thick["muscle"] == v0["muscle"] and thick["outer_ct"] > 1.3 * v0["outer_ct"]
+    assert "tissue_ratios" not in base.params and p.params["aponeurosis_cm"] == 0.24
+    with pytest.raises(InputError, match="tissue_ratios"):
+        make_mg_phantom("young", **MG, tissue_ratios={"imct": 0.2})
+    with pytest.raises(InputError, match="aponeurosis_cm"):
+        make_mg_phantom("young", **MG, aponeurosis_cm=0.0)
+
+
 def test_bad_arguments():
     with pytest.raises(InputError, match="does not fit"):
         make_leg_phantom(shape=(32, 32, 2), pixel_cm=0.156)

@@ -44,12 +44,12 @@ one leaves out.
 ``mixed`` (the default) is ``linearised``, and with a linear solver that solves the mixed form
 itself (``solve_mixed``: ``mixed_amg``, ``petsc_mixed``) Newton runs on the mixed form: the carried pressure p is an unknown of its own, the solve takes the
 force residual at p and the pressure residual θ − 1 − p/K̄
-(:meth:`~.solve.MechanicalSystem.mixed_residual`), stops on the mixed residual, and returns
+(:meth:`~.system.MechanicalSystem.mixed_residual`), stops on the mixed residual, and returns
 (Δd, Δp); the line search moves d and p together. An inexact solve then leaves its pressure-row
 error in the next iteration's pressure residual, where the condensed form multiplies it by the
 bulk modulus: the condensed solve has to reach a mixed residual ~K/μ smaller, which cost about
 half of its Krylov iterations on the leg. Eisenstat–Walker's η follows the mixed residual
-‖[r_u; w r_p]‖ (w: :attr:`~.solve.MechanicalSystem.pressure_weight`); its safeguard, and the
+‖[r_u; w r_p]‖ (w: :attr:`~.system.MechanicalSystem.pressure_weight`); its safeguard, and the
 convergence tests below, stay on the condensed residual r(d), so a converged state is the same
 equilibrium whichever form Newton ran on.
 
@@ -163,7 +163,7 @@ def line_search(system, state, dd: np.ndarray, cfg: NewtonConfig, pressure: tupl
     pressure : (p, Δp), optional
         Newton on the mixed form: the carried patch pressure (N_p,) N/cm² and its update. The trial
         at s carries p + sΔp, and r is the force residual with the carried pressure
-        (:meth:`~.solve.MechanicalSystem.mixed_residual`): g(s) is then the slope along Δd of the
+        (:meth:`~.system.MechanicalSystem.mixed_residual`): g(s) is then the slope along Δd of the
         potential at the pressure p + sΔp.
 
     Returns

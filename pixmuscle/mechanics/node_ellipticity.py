@@ -6,7 +6,7 @@ results file written before that was recorded, or for another stored state, it i
 again from what every results file holds: the model, the solve configuration (root attribute
 ``config``) and the RK coefficients ``/steps/d``. The deformation gradient is the solve's own
 smoothed (SCNI) F_L = I + Σ_I d_I ⊗ b̃_I(X_L) with the same shape functions and supports
-(:func:`.solve.model_scni`), the materials and activation those of the solve, so the field equals
+(:func:`.system.model_scni`), the materials and activation those of the solve, so the field equals
 the one the solve records (to round-off).
 
 Cost: the SCNI operators of the model (no stabilisation, no stiffness): 68k nodes about 15 s and
@@ -47,7 +47,7 @@ def state_acoustic_minimum(model, cfg, d: np.ndarray, alpha: float, activation=N
     (N,) float64
         < 0 where the law is not strongly elliptic.
     """
-    from .solve import material_response, model_scni, solve_materials, tissue_groups
+    from .system import material_response, model_scni, solve_materials, tissue_groups
 
     scni, _ = model_scni(model, cfg)
     F = scni.deformation_gradient(np.asarray(d, float))

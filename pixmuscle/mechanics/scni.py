@@ -315,18 +315,60 @@ def face_incidence(faces: Faces, volume: np.ndarray) -> list[sp.csr_matrix]:
     return out
 
 
-def smoothed_gradients(incidence: list[sp.csr_matrix], psi_faces: sp.csr_matrix) -> list[sp.csr_matrix]:
+def smoothed_gradients(incidence: list[sp.csr_matrix], psi_faces: sp.csr_matrix) -> StackedRows:
     """SCNI smoothed gradient operators G_k = D_k Ψ(faces) (N_cells × N_nodes, cm⁻¹).
 
     ``(G_k @ u)[L]`` is the cell average of ∂u^h/∂X_k over Ω_L for nodal coefficients ``u``
-    (paper eq. 17 with Ψ_I,k replaced by the smoothed b̃_Ik).
+    (paper eq. 17 with Ψ_I,k replaced by the smoothed b̃_Ik). The three are row blocks of one
+    stacked CSR matrix (:class:`StackedRows`), which the matrix-free tangent uses as it is.
     """
     out = []
     for D in incidence:
         G = (D @ psi_faces).tocsr()
         G.sort_indices()
         out.append(G)
-    return out
+    return StackedRows(out)
+
+
+class StackedRows(list):
+    """Sparse operators of equal width as row blocks of one CSR matrix: a list of the blocks, each
+    a CSR matrix on views of the stacked matrix's arrays, so that the blocks and the stack
+    (:attr:`stacked`, what :class:`~.tangent.ProductForm` multiplies with) are held once.
+
+    Parameters
+    ----------
+    mats : sequence of sparse (n_k × N)
+
+    Attributes
+    ----------
+    stacked : CSR (Σ n_k × N)
+        The blocks one above the other; 32-bit indices where they fit.
+    """
+
+    def __init__(self, mats):
+        B = sp.vstack([sp.csr_matrix(M) for M in mats], format="csr")
+        B.sort_indices()
+        if B.nnz < np.iinfo(np.int32).max and max(B.shape) < np.iinfo(np.int32).max:
+            B.indices = B.indices.astype(np.int32, copy=False)
+            B.indptr = B.indptr.astype(np.int32, copy=False)
+        self.stacked = B
+        lo = 0
+        blocks = []
+        for M in mats:
+            blocks.append(_row_view(B, lo, lo + M.shape[0]))
+            lo += M.shape[0]
+        super().__init__(blocks)
+
+
+def _row_view(A: sp.csr_matrix, lo: int, hi: int) -> sp.csr_matrix:
+    """Rows ``lo:hi`` of the CSR ``A`` on views of its index and value arrays (only the row
+    pointers are new; SciPy's own slicing copies)."""
+    s, e = A.indptr[lo], A.indptr[hi]
+    blk = sp.csr_matrix((hi - lo, A.shape[1]), dtype=A.dtype)
+    blk.indptr = (A.indptr[lo:hi + 1] - s).astype(A.indices.dtype, copy=False)
+    blk.indices, blk.data = A.indices[s:e], A.data[s:e]
+    blk.has_sorted_indices = True
+    return blk
 
 
 @dataclasses.dataclass
@@ -335,14 +377,16 @@ class SCNI:
 
     Attributes
     ----------
-    G : list of 3 CSR (N, N)
-        Smoothed gradient operators, cm⁻¹: ``G[k][L, I] = b̃_Ik(X_L)``.
+    G : StackedRows of 3 CSR (N, N)
+        Smoothed gradient operators, cm⁻¹: ``G[k][L, I] = b̃_Ik(X_L)``; row blocks of one stacked
+        CSR matrix (``G.stacked``, 3N × N), which the matrix-free tangent multiplies with.
     volume : (N,) float
         Cell volumes V_L, cm³.
     faces : Faces
-    psi_faces : CSR (F, N)
+    psi_faces : CSR (F, N) or None
         Ψ_I on each face: at its centre, or the mean over its vertices on the ``vertex_faces`` of
-        :func:`build_scni`.
+        :func:`build_scni`; None once a mechanical system has made its support pattern from it
+        (nothing else needs it after the gradients are built).
     dpsi_faces : list of 3 CSR (F, N) or None
         ∂Ψ_I/∂X_k on each face, by the same rule (needed by the NSNI stabilisation).
     spacing : (3,) float, cm
@@ -353,7 +397,7 @@ class SCNI:
     G: list
     volume: np.ndarray
     faces: Faces
-    psi_faces: sp.csr_matrix
+    psi_faces: sp.csr_matrix | None
     dpsi_faces: list | None
     spacing: np.ndarray
     support: np.ndarray

@@ -20,6 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from .scni import StackedRows
 from .threaded import ThreadedCSR
 
 
@@ -40,6 +41,227 @@ def _contract(C, g, n, out):  # pragma: no cover - compiled
                 out[q, J, L, i] = s
 
 
+#: row blocks of a transposed product Bᵀ X (:class:`TransposedCSR`): a fixed number, so that the sums,
+#: and the product bit for bit, do not depend on the number of threads
+TRANSPOSE_PARTS = 8
+
+
+@numba.njit(cache=True, parallel=True)
+def _tmatmat3(indptr, indices, data, X, cuts, out):  # pragma: no cover - compiled
+    """out[p] = A[cuts[p]:cuts[p + 1]]ᵀ X[cuts[p]:cuts[p + 1]] for CSR A, X (m, 3), out (P, n, 3) zeros."""
+    for p in numba.prange(cuts.size - 1):
+        o = out[p]
+        for r in range(cuts[p], cuts[p + 1]):
+            x0 = X[r, 0]
+            x1 = X[r, 1]
+            x2 = X[r, 2]
+            for jj in range(indptr[r], indptr[r + 1]):
+                a = data[jj]
+                j = indices[jj]
+                o[j, 0] += a * x0
+                o[j, 1] += a * x1
+                o[j, 2] += a * x2
+
+
+class TransposedCSR:
+    """Aᵀ of a CSR matrix A (m × n) as an operator, without a transposed copy.
+
+    ``Aᵀ @ X`` for X (m, 3) scatters the rows of A, :data:`TRANSPOSE_PARTS` row blocks of about
+    equal non-zeros in parallel, each into its own (n, 3) sum, added in a fixed order; other
+    right-hand sides use SciPy's product with the CSC view ``A.T``.
+
+    Parameters
+    ----------
+    A : CSR (m × n)
+
+    Attributes
+    ----------
+    matrix : CSC (n × m)
+        ``A.T``: a view of A's arrays.
+    """
+
+    def __init__(self, A: sp.csr_matrix):
+        self._A = A
+        self.shape = (A.shape[1], A.shape[0])
+        cuts = np.searchsorted(A.indptr, np.linspace(0, A.nnz, TRANSPOSE_PARTS + 1)[1:-1])
+        self._cuts = np.concatenate([[0], cuts, [A.shape[0]]]).astype(np.int64)
+
+    @property
+    def matrix(self) -> sp.csc_matrix:
+        return self._A.T
+
+    @property
+    def nnz(self) -> int:
+        return self._A.nnz
+
+    def __matmul__(self, X):
+        A = self._A
+        if sp.issparse(X) or np.ndim(X) != 2 or np.shape(X)[1] != 3 or A.dtype != np.float64:
+            return A.T @ X
+        parts = np.zeros((TRANSPOSE_PARTS, self.shape[0], 3))
+        _tmatmat3(A.indptr, A.indices, A.data, np.ascontiguousarray(X, dtype=np.float64), self._cuts, parts)
+        out = parts[0]
+        for p in range(1, TRANSPOSE_PARTS):
+            out += parts[p]
+        return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _rows_matmat(indptr, indices, data, rows, X, out):  # pragma: no cover - compiled
+    """out[i] = A[rows[i]] X for CSR A and X (n, k): each row summed in index order, as a CSR product."""
+    k = X.shape[1]
+    for i in numba.prange(rows.size):
+        r = rows[i]
+        for c in range(k):
+            out[i, c] = 0.0
+        for jj in range(indptr[r], indptr[r + 1]):
+            a = data[jj]
+            j = indices[jj]
+            for c in range(k):
+                out[i, c] += a * X[j, c]
+
+
+class RowSubset:
+    """Rows ``rows`` of a CSR matrix A as an operator, without a copy of them: ``A[rows] @ X``
+    multiplies with A's own arrays (a compiled product, rows in parallel, each summed in index
+    order: the same numbers as the product with the copied rows).
+
+    Parameters
+    ----------
+    A : CSR (m × n)
+    rows : (r,) int
+    """
+
+    def __init__(self, A, rows: np.ndarray):
+        A = A.matrix if isinstance(A, ThreadedCSR) else A
+        self._A = sp.csr_matrix(A)  # no copy of a CSR matrix
+        self.rows = np.asarray(rows, np.int64)
+        self.shape = (self.rows.size, self._A.shape[1])
+
+    @property
+    def matrix(self) -> sp.csr_matrix:
+        """The rows as a CSR matrix (a copy)."""
+        return self._A[self.rows]
+
+    def __matmul__(self, X):
+        A = self._A
+        X = np.asarray(X)
+        if X.ndim not in (1, 2) or X.dtype.kind != "f" or A.dtype != np.float64:
+            return A[self.rows] @ X
+        X2 = np.ascontiguousarray(X.reshape(X.shape[0], -1), dtype=np.float64)
+        out = np.empty((self.rows.size, X2.shape[1]))
+        _rows_matmat(A.indptr, A.indices, A.data, self.rows, X2, out)
+        return out.reshape((self.rows.size,) + X.shape[1:])
+
+
+@numba.njit(cache=True, parallel=True)
+def _symmatmat(indptr, indices, data, X, cuts, out):  # pragma: no cover - compiled
+    """out[p] = U_p X + (U_p − diag U_p)ᵀ X for the rows U_p = U[cuts[p]:cuts[p + 1]] of an upper
+    triangle U (CSR), X (n, k), out (P, n, k) zeros."""
+    k = X.shape[1]
+    for p in numba.prange(cuts.size - 1):
+        o = out[p]
+        for r in range(cuts[p], cuts[p + 1]):
+            for jj in range(indptr[r], indptr[r + 1]):
+                a = data[jj]
+                j = indices[jj]
+                for c in range(k):
+                    o[r, c] += a * X[j, c]
+                if j != r:
+                    for c in range(k):
+                        o[j, c] += a * X[r, c]
+
+
+class SymmetricCSR:
+    """A symmetric sparse matrix L (n × n) stored as its upper triangle U (diagonal included): half
+    the entries.
+
+    ``L @ X`` is one pass over U, :data:`TRANSPOSE_PARTS` row blocks of about equal non-zeros in
+    parallel, each adding U_p X and its transpose's share into its own sum, added in a fixed order (so
+    the product does not depend on the number of threads).
+
+    Parameters
+    ----------
+    L : sparse (n × n)
+        Symmetric; its upper triangle is kept (the lower one differs from it by round-off at most).
+
+    Attributes
+    ----------
+    upper : CSR (n × n)
+        U, sorted, 32-bit indices where they fit.
+    """
+
+    def __init__(self, L):
+        U = sp.triu(sp.csr_matrix(L), format="csr")
+        U.sort_indices()
+        if U.nnz < np.iinfo(np.int32).max and U.shape[0] < np.iinfo(np.int32).max:
+            U.indices = U.indices.astype(np.int32, copy=False)
+            U.indptr = U.indptr.astype(np.int32, copy=False)
+        self.upper = U
+        self.shape = U.shape
+        cuts = np.searchsorted(U.indptr, np.linspace(0, U.nnz, TRANSPOSE_PARTS + 1)[1:-1])
+        self._cuts = np.concatenate([[0], cuts, [U.shape[0]]]).astype(np.int64)
+
+    @property
+    def nnz(self) -> int:
+        """Stored entries (of U)."""
+        return self.upper.nnz
+
+    @property
+    def matrix(self) -> sp.csr_matrix:
+        """L as a CSR matrix, sorted (made anew at each call: n × n with both triangles)."""
+        U = self.upper
+        L = (U + sp.triu(U, k=1, format="csr").T).tocsr()
+        L.sort_indices()
+        return L
+
+    def rows_matrix(self, nodes: np.ndarray) -> sp.csr_matrix:
+        """The rows ``nodes`` of L in place (n × n CSR, sorted; the other rows empty)."""
+        nodes = np.asarray(nodes, np.int64)
+        R = self._rows(nodes).tocoo()
+        M = sp.csr_matrix((R.data, (nodes[R.row], R.col)), shape=self.shape)
+        M.sort_indices()
+        return M
+
+    def _lower(self, nodes: np.ndarray) -> sp.csr_matrix:
+        """The strictly lower triangle of L's rows ``nodes`` (distinct), (len(nodes) × n) CSR: the
+        entries U[i, j], i < j, of U's columns j in ``nodes``."""
+        U = self.upper
+        n = self.shape[0]
+        local = np.full(n, -1, np.int64)
+        local[nodes] = np.arange(nodes.size)
+        i = np.repeat(np.arange(n, dtype=U.indices.dtype), np.diff(U.indptr))
+        sel = np.flatnonzero((local[U.indices] >= 0) & (U.indices != i))
+        M = sp.csr_matrix((U.data[sel], (local[U.indices[sel]], i[sel])), shape=(nodes.size, n))
+        M.sort_indices()
+        return M
+
+    def _rows(self, nodes: np.ndarray) -> sp.csr_matrix:
+        """L[nodes] (len(nodes) × n CSR, distinct ``nodes``)."""
+        return (self.upper[nodes] + self._lower(nodes)).tocsr()
+
+    def rows(self, nodes: np.ndarray):
+        """The rows ``nodes`` R (distinct) of L as a function Z (n, k) → (L Z)_R: U's own rows, and
+        the strictly lower part of L's rows R (U's columns R) stored, about half of L[R]."""
+        nodes = np.asarray(nodes, np.int64)
+        upper = RowSubset(self.upper, nodes)
+        lower = ThreadedCSR(self._lower(nodes))
+        return lambda Z: upper @ Z + lower @ Z
+
+    def __matmul__(self, X):
+        if sp.issparse(X):
+            return self.matrix @ X
+        X = np.asarray(X, dtype=np.float64)
+        X2 = np.ascontiguousarray(X.reshape(X.shape[0], -1))
+        parts = np.zeros((TRANSPOSE_PARTS,) + X2.shape)
+        U = self.upper
+        _symmatmat(U.indptr, U.indices, U.data, X2, self._cuts, parts)
+        out = parts[0]
+        for p in range(1, TRANSPOSE_PARTS):
+            out += parts[p]
+        return out.reshape(X.shape)
+
+
 class ProductForm:
     """Σ_q Σ_L B_q,Lᵀ C_q,L B_q,L for groups q of three (N × N) gradient-like operators.
 
@@ -51,30 +273,36 @@ class ProductForm:
 
     Notes
     -----
-    The operators are stacked once into a CSR matrix B (3·Q·N × N) and its transpose; each
-    product :meth:`apply` is ``Bᵀ (C : (B v))`` with two sparse-times-dense products and one
-    compiled per-node contraction, all on every core (:mod:`.threaded`).
+    The operators are stacked once into a CSR matrix B (3·Q·N × N); each product :meth:`apply`
+    is ``Bᵀ (C : (B v))`` with two sparse-times-dense products and one compiled per-node
+    contraction, all on every core (:mod:`.threaded`). One group given as
+    :class:`~.scni.StackedRows` (the SCNI gradients) is used as it is stacked, without a copy.
+    Bᵀ is not stored: its products scatter the rows of B (:class:`TransposedCSR`; on the 21k leg
+    B holds 0.026 GB, as its transpose did).
 
     Attributes
     ----------
-    B, BT : ThreadedCSR
-        The stacked operators and their transpose (``.matrix`` is the CSR matrix itself).
+    B : ThreadedCSR
+        The stacked operators (``.matrix`` is the CSR matrix itself).
+    BT : TransposedCSR
+        Their transpose, on B's arrays.
     """
 
     def __init__(self, groups):
         self.n_groups = len(groups)
         self.n = groups[0][0].shape[1]
-        B = sp.vstack([sp.csr_matrix(M) for grp in groups for M in grp], format="csr")
-        if B.nnz < np.iinfo(np.int32).max:
-            B.indices = B.indices.astype(np.int32)
-            B.indptr = B.indptr.astype(np.int32)
+        if len(groups) == 1 and isinstance(groups[0], StackedRows) and len(groups[0]) == 3:
+            B = groups[0].stacked
+        else:
+            B = StackedRows([M for grp in groups for M in grp]).stacked
         self.B = ThreadedCSR(B)
-        self.BT = ThreadedCSR(B.T.tocsr())
+        self.BT = TransposedCSR(B)
 
     @property
     def nbytes(self) -> int:
         """Memory of the stacked operators, bytes."""
-        return sum(M.data.nbytes + M.indices.nbytes + M.indptr.nbytes for M in (self.B.matrix, self.BT.matrix))
+        M = self.B.matrix
+        return M.data.nbytes + M.indices.nbytes + M.indptr.nbytes
 
     def gradients(self, V: np.ndarray) -> np.ndarray:
         """Per-group gradients of the nodal field V (N, 3): shape (Q, N, 3, 3), index [q, L, i, J]."""
@@ -114,7 +342,8 @@ class RowProduct:
 
     with B_h the gradient rows of those cells only and B_hR their columns of R. The operators hold
     the cells around R, not the rows of K (whose pairs reach twice as far): on the 74k leg the region
-    solves' rows of K_d held 78 M non-zeros.
+    solves' rows of K_d held 78 M non-zeros. B_h is applied from B's own arrays (:class:`RowSubset`);
+    only B_hR, the columns of R transposed, is stored.
 
     Parameters
     ----------
@@ -141,10 +370,9 @@ class RowProduct:
         q, L = np.nonzero(seen)
         self.cells = q * n + L
         rows = (q[None, :] * 3 * n + np.arange(3)[:, None] * n + L[None, :]).ravel()  # rows (J, cell)
-        Bh = B[rows]
         self.n_cells = self.cells.size
-        self.Bh = ThreadedCSR(Bh)
-        self.BhT = ThreadedCSR(Bh[:, nodes].T.tocsr())
+        self.Bh = RowSubset(B, rows)  # B's own rows, not a copy
+        self.BhT = ThreadedCSR(B[rows][:, nodes].T.tocsr())
 
     def apply(self, C: np.ndarray, Z: np.ndarray) -> np.ndarray:
         """(K Z)_R, (n, 3), for the moduli of :attr:`cells` C (n_h, 9, 9) and nodal values Z (N, 3)."""
@@ -166,8 +394,9 @@ class ConstantStiffness:
 
     assembled once: a product is then one sparse product with three columns, in place of two with
     the stacked operators (three times the rows of L) and a 9 × 9 contraction per row. On the 21k
-    leg L has as many non-zeros as the stacked operators (337 per row), so it also holds half their
-    memory. Otherwise the product is :class:`ProductForm`'s.
+    leg L has as many non-zeros as the stacked operators (337 per row); it is symmetric, and only its
+    upper triangle is kept (:class:`SymmetricCSR`: 0.081 → 0.04 GB on the 21k leg). Otherwise the
+    product is :class:`ProductForm`'s.
 
     Parameters
     ----------
@@ -186,9 +415,13 @@ class ConstantStiffness:
             n = self.n
             B = sp.vstack([sp.csr_matrix(M) for grp in groups for M in grp], format="csr")  # rows (q, J, L)
             w = np.concatenate([c[q * n:(q + 1) * n] for q in range(len(groups)) for _ in groups[q]])
-            L = (B.T @ sp.diags(w) @ B).tocsr()
-            L.sort_indices()
-            self.L = ThreadedCSR(L)
+            if np.all(w >= 0.0):  # L = (W^½ B)ᵀ (W^½ B), B's values scaled: one copy of B less in the build
+                B.data = B.data * np.sqrt(np.repeat(w, np.diff(B.indptr)))
+                L = B.T.tocsr() @ B
+            else:
+                L = B.T @ sp.diags(w) @ B
+            del B
+            self.L = SymmetricCSR(L.tocsr())
         else:
             self.form, self.C = ProductForm(groups), np.ascontiguousarray(C)
 
@@ -201,8 +434,7 @@ class ConstantStiffness:
     def rows(self, nodes: np.ndarray):
         """The rows of the nodes R as a function Z (N, 3) → (K Z)_R (n, 3)."""
         if self.scalar:
-            LR = ThreadedCSR(self.L.matrix[np.asarray(nodes, np.int64)])
-            return lambda Z: LR @ Z
+            return self.L.rows(nodes)
         rp = RowProduct(self.form, nodes)
         C = np.ascontiguousarray(self.C[rp.cells])
         return lambda Z: rp.apply(C, Z)

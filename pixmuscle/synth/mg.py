@@ -202,7 +202,8 @@ class MGAnatomy:
 def make_mg_phantom(subject="young", shape=(96, 64, 10), pixel_cm=0.078125, slice_cm=0.5, noise=0.04,
                     dti_factor=2, seed=0, *, length_cm=None, size_scale=None, pennation_deg=None,
                     dti_noise=0.05, supersample=4, supersample_z=2, bias=0.03, septum_cm=None,
-                    fiber_spread_deg=3.0, fascicle_cm=None, imct_layout="parallel") -> Phantom:
+                    fiber_spread_deg=3.0, fascicle_cm=None, imct_layout="parallel", tissue_ratios=None,
+                    aponeurosis_cm=0.12) -> Phantom:
     """SYNTHETIC medial gastrocnemius of a young or old subject with Table 3 tissue proportions.
 
     A stand-in for the paper's Example 3 data (not public): see docs/phantoms.md.
@@ -243,6 +244,12 @@ def make_mg_phantom(subject="young", shape=(96, 64, 10), pixel_cm=0.078125, slic
         IMCT sheets containing the fibres (default: the endomysium/perimysium-like arrangement,
         mechanically in parallel with them) or sheets normal to the fibres, which every fibre
         crosses (in series with them) — for experiments (docs/examples.md).
+    tissue_ratios : dict, optional
+        ``{"imct_per_muscle": r, "imat_per_muscle": r}``: the target volume ratios instead of
+        Table 3's (:func:`table3_ratios`), e.g. to hold the volumes of a phantom whose
+        architecture or IMCT layout changed (benchmarks/bench_example3.py).
+    aponeurosis_cm : float
+        Thickness of the aponeurosis (connective tissue around the muscle), cm.
     dti_noise, supersample, supersample_z, bias, fiber_spread_deg
         As in :func:`make_leg_phantom`.
     septum_cm : float, optional
@@ -275,7 +282,12 @@ def make_mg_phantom(subject="young", shape=(96, 64, 10), pixel_cm=0.078125, slic
         raise InputError(f"make_mg_phantom: fascicle_cm must be > 0 and pennation_deg in (0, 90), got "
                          f"{fascicle_cm}, {pennation_deg}")
     septum_cm = 1.5 * pixel_cm if septum_cm is None else float(septum_cm)
-    ratios = table3_ratios(subject)
+    ratios = dict(table3_ratios(subject), **(tissue_ratios or {}))
+    if set(ratios) != {"imct_per_muscle", "imat_per_muscle"} or min(ratios.values()) < 0:
+        raise InputError(f"make_mg_phantom: tissue_ratios takes imct_per_muscle and imat_per_muscle >= 0, got "
+                         f"{tissue_ratios}")
+    if not aponeurosis_cm > 0:
+        raise InputError(f"make_mg_phantom: aponeurosis_cm must be > 0, got {aponeurosis_cm}")
     denom = 1.0 + ratios["imct_per_muscle"] + ratios["imat_per_muscle"]
     f_ct, f_at = ratios["imct_per_muscle"] / denom, ratios["imat_per_muscle"] / denom
     rng = np.random.default_rng(seed)
@@ -286,7 +298,7 @@ def make_mg_phantom(subject="young", shape=(96, 64, 10), pixel_cm=0.078125, slic
     centre = origin[:2] + 0.5 * (np.array(shape[:2]) - 1) * pixel_cm
     z_range = (origin[2], origin[2] + (shape[2] - 1) * slice_cm)
     anatomy = MGAnatomy(centre, z_range, rng, semi_axes=semi_axes(size_scale, fascicle_cm, pennation_deg),
-                        septum_cm=septum_cm, imct_fraction=f_ct, pennation_deg=pennation_deg,
+                        septum_cm=septum_cm, imct_fraction=f_ct, apo_cm=float(aponeurosis_cm), pennation_deg=pennation_deg,
                         fiber_spread_deg=fiber_spread_deg, imct_layout=imct_layout)
     ext = anatomy.outer_extent()
     check_fits("make_mg_phantom", centre - ext, centre + ext, affine, shape)
@@ -299,6 +311,8 @@ def make_mg_phantom(subject="young", shape=(96, 64, 10), pixel_cm=0.078125, slic
                   pennation_deg=pennation_deg, fascicle_cm=fascicle_cm, dti_noise=dti_noise, supersample=supersample,
                   supersample_z=supersample_z, bias=bias, septum_cm=septum_cm,
                   fiber_spread_deg=fiber_spread_deg, imct_layout=imct_layout, table3_target=dict(TABLE3[subject]))
+    if tissue_ratios is not None or aponeurosis_cm != 0.12:  # (the shipped samples' parameters unchanged)
+        params.update(tissue_ratios=ratios, aponeurosis_cm=float(aponeurosis_cm))
     return render_phantom(anatomy, shape, affine, dshape, dti_affine, rng, noise=noise,
                           dti_noise=dti_noise, ss=supersample, ss_z=supersample_z, bias=bias,
                           muscle_contrast=0.0, names=["medial_gastrocnemius"], params=params)

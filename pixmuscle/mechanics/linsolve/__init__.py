@@ -23,7 +23,7 @@ dataclass (:mod:`.base`); the package imports its modules when it loads, the con
     tangent, never assembled), preconditioned by algebraic multigrid (:mod:`.multigrid`: hypre
     BoomerAMG through petsc4py where installed, else pyamg smoothed aggregation; option ``amg``)
     built from a filtered positive stand-in of the tangent (blocks within ±2 voxels,
-    :meth:`~pixmuscle.mechanics.solve.MechanicalSystem.preconditioner_matrix`). The hierarchy is
+    :meth:`~pixmuscle.mechanics.system.MechanicalSystem.preconditioner_matrix`). The hierarchy is
     rebuilt once the iterations lost to its staleness have cost as much as a rebuild
     (:class:`KrylovAMGSolver`). Newton passes an
     adaptive tolerance (inexact Newton). Memory grows linearly with the model. With the projected
@@ -55,6 +55,12 @@ dataclass (:mod:`.base`); the package imports its modules when it loads, the con
 ``auto`` (the default)
     ``direct`` up to ``direct_max_dofs`` unknowns (15k nodes with PARDISO, 4k with SuperLU),
     ``mixed_amg`` above (:mod:`.auto`).
+
+A backend sees the system only through :class:`~.operator.SystemOperator` (apply the tangent, its
+assembled or owned rows, the positive stand-in, the pressure space and patch divergence of the
+mixed form, the stiff regions, the near-null space). The mixed method is written once
+(:mod:`.mixed_method`) for ``mixed_amg`` and ``petsc_mixed``; when the AMG backends rebuild their
+preconditioner is a component, :class:`~.rebuild.RebuildPolicy`.
 """
 
 from __future__ import annotations
@@ -71,14 +77,16 @@ from .direct import DirectOptions, DirectSolver, ReusePolicy  # noqa: E402
 from .factorization import PardisoFactor, SuperLUFactor, nested_dissection  # noqa: E402
 from .fgmres import fgmres  # noqa: E402
 from .mixed import MixedAMGOptions, MixedBlockSolver  # noqa: E402
+from .operator import SystemOperator  # noqa: E402
 from .petsc import PETScOptions, PETScSolver  # noqa: E402
 from .petsc_mixed import PETScMixedOptions, PETScMixedSolver  # noqa: E402
+from .rebuild import RebuildPolicy  # noqa: E402
 
 __all__ = ["LinearSolver", "SolverMemory", "DirectSolver", "KrylovAMGSolver", "BACKENDS", "make_solver", "pcg", "rigid_body_modes",
            "voxel_aggregates", "nested_dissection", "AUTO_DIRECT_MAX_DOFS", "PETScSolver", "MixedBlockSolver", "fgmres",
            "AutoOptions", "CGAMGOptions", "DirectOptions", "MixedAMGOptions", "PETScOptions", "ReusePolicy",
            "PETScMixedOptions", "PETScMixedSolver",
-           "PardisoFactor", "SuperLUFactor"]
+           "PardisoFactor", "SuperLUFactor", "RebuildPolicy", "SystemOperator"]
 
 
 def make_solver(backend, X: np.ndarray, *, ijk: np.ndarray | None = None, width=(4, 4, 4), **options) -> LinearSolver:

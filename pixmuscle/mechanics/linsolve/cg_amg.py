@@ -21,9 +21,10 @@ import scipy.sparse as sp
 
 from ...errors import SolverError, SolverGaveUp
 from .amg_processes import group
-from .base import BACKENDS, Iterative, LinearSolver, SolverMemory, built_from, memory_state, pcg, rigid_body_modes
+from .base import BACKENDS, Iterative, LinearSolver, SolverMemory, built_from, memory_state, pcg
 from .fgmres import fgmres
 from .multigrid import AMG_CHOICES, auto_processes, resolve, v_cycle
+from .rebuild import RebuildPolicy
 
 _LOG = logging.getLogger(__name__)
 
@@ -76,16 +77,19 @@ class KrylovAMGSolver(LinearSolver):
     restart : int
         FGMRES basis size for an indefinite system (below).
     rebuild_cost : int
-        What one build of the hierarchy costs, in Krylov iterations (below).
+        What one build of the hierarchy costs, in Krylov iterations (:class:`.rebuild.RebuildPolicy`).
     give_up : float
         A hierarchy that has not converged a solve yet gets ``give_up`` times the last measured
-        rate (below).
+        rate (:class:`.rebuild.RebuildPolicy`).
     amg : {"auto", "hypre", "pyamg"}
         The multigrid (:func:`.multigrid.resolve`).
     amg_processes : int or "auto"
         Processes BoomerAMG runs on (:mod:`.amg_processes`); more than 1 needs hypre. ``"auto"``:
         :func:`.multigrid.auto_processes` of the model's size, falling back to 1 (with a warning)
         where the workers do not start.
+    policy : RebuildPolicy, optional
+        When to rebuild the hierarchy (default: the rule of ``rebuild_cost``, ``give_up`` and
+        ``maxiter``); the solver holds it as :attr:`policy`.
 
     Notes
     -----
@@ -93,20 +97,9 @@ class KrylovAMGSolver(LinearSolver):
     FGMRES (restart ``restart``) with the same preconditioner, from zero, to the same relative
     residual; ``info["indefinite_solves"]`` counts them.
 
-    Rebuild policy (the "ski-rental" rule, counted in iterations): the first solve after a build
-    sets the reference rate, Krylov iterations per decade of residual reduction. Every later
-    solve adds the iterations it needs beyond that rate's prediction to an account; once the
-    account exceeds ``rebuild_cost`` the hierarchy is rebuilt from the next Newton iteration's
-    tangent, and a solve that exceeds it on its own is stopped there, the hierarchy rebuilt from
-    its tangent and the solve continued from the iterate it had reached (the next solve measures
-    the new hierarchy's rate). So the iterations lost to a stale preconditioner never exceed
-    what a rebuild costs. A hierarchy that has not yet converged a solve (right
-    after a build) gets ``give_up`` × the last measured rate × decades + ``rebuild_cost``
-    iterations, those spent before a mid-solve rebuild included; a system that needs more is far
-    harder than the earlier ones (on the 74k leg: the state after an overshooting first update of
-    an activation step, where a fresh hierarchy did not converge in 700 iterations), and the solve
-    fails (:class:`~pixmuscle.errors.SolverGaveUp`), so that Newton cuts the load increment back
-    instead of iterating for an hour; the next system gets a new hierarchy.
+    Rebuild policy: :class:`.rebuild.RebuildPolicy` (the "ski-rental" rule counted in iterations),
+    held as :attr:`policy`; a solve the give-up budget stops fails with
+    :class:`~pixmuscle.errors.SolverGaveUp`, so that Newton cuts the load increment back.
     What a build costs in iterations depends on the backend: for ``mixed_amg`` at 74k nodes
     (hypre on 2 processes) a rebuild takes 18–19 s (filtered stand-in 2.3 s, BoomerAMG 4.4 s,
     region factors 4.4 s, probed Schur diagonal 7.5 s) against 0.42 s per FGMRES iteration,
@@ -121,7 +114,7 @@ class KrylovAMGSolver(LinearSolver):
 
     def __init__(self, X, ijk, rtol: float = 1e-8, maxiter: int = 2000, reach: int = 2, aggregate=(3, 3, 1),
                  theta: float = 0.1, restart: int = 100, rebuild_cost: int = 100, give_up: float = 4.0,
-                 amg: str = "auto", amg_processes: int | str = "auto"):
+                 amg: str = "auto", amg_processes: int | str = "auto", policy: RebuildPolicy | None = None):
         super().__init__()
         auto = amg_processes == "auto"
         self.amg = resolve(amg, 1 if auto else amg_processes)
@@ -135,10 +128,9 @@ class KrylovAMGSolver(LinearSolver):
                 _LOG.warning(msg)
                 self.warnings.append(msg)
                 self.amg_processes = 1
-        self.rebuild_cost = rebuild_cost
-        self.give_up = give_up
+        self.policy = RebuildPolicy(rebuild_cost, give_up, maxiter) if policy is None else policy
         self.restart = restart
-        self.B = rigid_body_modes(X)
+        self.B = None  # the near-null space of the system (rigid-body modes), taken at the first build
         self.ijk = np.asarray(ijk)
         self.rtol = rtol
         self.maxiter = maxiter
@@ -146,10 +138,6 @@ class KrylovAMGSolver(LinearSolver):
         self.aggregate = aggregate
         self.theta = theta
         self._M = None
-        self._rate0 = None
-        self._rate_last = None  # the last reference rate measured, of this hierarchy or an earlier one
-        self._excess = 0.0  # Krylov iterations beyond the reference rate since the last build
-        self._stale = True
         self._system = None
         self._state = None
         self._built_at = None  # (d, t, α, carried pressure) of the state the hierarchy was built from
@@ -166,6 +154,8 @@ class KrylovAMGSolver(LinearSolver):
         t0 = time.perf_counter()
         self._M = None  # release the old hierarchy before the new one is built (peak memory)
         aggregates = voxel_aggregates(self.ijk, self.aggregate) if self.amg == "pyamg" else None
+        if self.B is None:
+            self.B = self._system.near_null_space()
         self._M = v_cycle(self.amg, self._stand_in, self.B, aggregates, self.theta, self.amg_processes)  # made and released inside
         self.info["preconditioner_nnz_per_row"] = self._M.nnz_per_row
         self.info["levels"] = self._M.levels
@@ -173,68 +163,32 @@ class KrylovAMGSolver(LinearSolver):
         self.info["preconditioner_builds"] += 1
         self.info["setup_s"] += time.perf_counter() - t0
         self.info["build_s"].append(time.perf_counter() - t0)
-        self._rate0 = None
-        self._excess = 0.0
-        self._stale = False
-        self._fresh = True
+        self.policy.built()
         self._built_at = built_from(self._state)
 
     def _stand_in(self) -> sp.bsr_matrix:
         """The matrix the AMG hierarchy is built from: a filtered positive stand-in of the tangent."""
         return self._system.preconditioner_matrix(self._state, self.reach)
 
-    def _budget(self, rtol: float) -> int:
-        """Iterations a solve to ``rtol`` may take: with a kept hierarchy, its reference rate's
-        prediction plus what is left of the rebuild cost (then it is rebuilt); with a hierarchy
-        that has not converged a solve yet, ``give_up`` times the last measured rate's prediction
-        plus the rebuild cost (then the solve fails); ``maxiter`` before any rate is known."""
-        decades = max(np.log10(1.0 / rtol), 1.0)
-        if self._fresh or self._rate0 is None:
-            if self._rate_last is None:
-                return self.maxiter
-            budget = self.give_up * self._rate_last * decades + self.rebuild_cost
-        else:
-            budget = self._rate0 * decades + self.rebuild_cost - self._excess
-        return min(max(int(np.ceil(budget)), 1), self.maxiter)
-
-    def _retry_budget(self, rtol: float, spent: int) -> int:
-        """Iterations left to a solve restarted after a mid-solve rebuild, ``spent`` iterations
-        already done: the give-up budget counts the whole system, the stale iterations included
-        (on the 74k leg an overshooting update's system would otherwise cost ~170 iterations more
-        before Newton cuts the increment back)."""
-        return max(min(self._budget(rtol) - spent, self.maxiter - spent), 1)
-
     def _fail(self, method: str, status: str, total: int, rtol: float) -> SolverError:
         """The error of a solve by ``method`` that ended with ``status`` after ``total`` iterations:
         :class:`~pixmuscle.errors.SolverGaveUp` when the give-up budget stopped it (the hierarchy,
         built for a state Newton will now leave, is then rebuilt at the next system)."""
-        if status == "maxiter" and total < self.maxiter:  # stopped by the give-up budget
-            self._stale = True
+        if self.policy.gave_up(status, total):
             return SolverGaveUp(
                 f"{self.name}: {method} gave up after {total} iterations (relative residual target {rtol:.1e}): this "
-                f"system needs far more than the earlier ones (solver.give_up: {self.give_up:g}), e.g. after an "
+                f"system needs far more than the earlier ones (solver.give_up: {self.policy.give_up:g}), e.g. after an "
                 "overshooting Newton update; a smaller load increment (solve.steps) helps")
         return SolverError(f"{self.name}: {method} {status} after {total} iterations (relative residual target {rtol:.1e}); "
                            "check the boundary conditions (a free rigid-body motion makes K singular), or use "
                            "solver.backend: direct on small models")
 
-    def _account(self, its: int, rtol: float) -> None:
-        """Ski-rental bookkeeping after a converged solve of ``its`` iterations to ``rtol``."""
-        decades = max(np.log10(1.0 / rtol), 1.0)
-        if self._rate0 is None:
-            if its > decades:  # a solve of one iteration per decade or less (a right-hand side in a few modes) shows no rate
-                self._rate0 = self._rate_last = its / decades
-        elif its > 0:
-            self._excess += max(its - self._rate0 * decades, 0.0)
-            if self._excess > self.rebuild_cost:
-                self._stale = True  # rebuilt at the next prepare(), from that state's tangent
-
     def prepare(self, system, state):
         self.info["setup_s"] = 0.0
         self._system, self._state = system, state
         self._A = system.tangent_operator(state)
-        self._fresh = False
-        if self._M is None or self._stale:
+        self.policy.new_system()
+        if self.policy.must_build(self._M is not None):
             self._build()
 
     def solve(self, r, rtol=None):
@@ -242,12 +196,12 @@ class KrylovAMGSolver(LinearSolver):
         setup0 = self.info["setup_s"]
         rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
         b = np.asarray(r, float)
-        x, its, status = pcg(self._A, b, self._M, rtol, self._budget(rtol))
+        x, its, status = pcg(self._A, b, self._M, rtol, self.policy.budget(rtol))
         total, method, rebuilt = its, "CG", False
-        if status == "maxiter" and not self._fresh and total < self.maxiter:
+        if self.policy.may_rebuild(status, total):
             _LOG.debug("CG: %d iterations with a kept preconditioner cost more than a rebuild; rebuilding it", its)
             self._build()
-            x, its, status = pcg(self._A, b, self._M, rtol, self._retry_budget(rtol, total), x0=x)
+            x, its, status = pcg(self._A, b, self._M, rtol, self.policy.retry_budget(rtol, total), x0=x)
             total += its
             rebuilt = True
         if status == "breakdown":  # negative curvature: the tangent is indefinite here
@@ -262,7 +216,7 @@ class KrylovAMGSolver(LinearSolver):
         if status != "converged":
             raise self._fail(method, status, total, rtol)
         if not rebuilt:  # a solve continued after a rebuild does not show the new hierarchy's rate: the next one does
-            self._account(its, rtol)
+            self.policy.account(its, rtol)
         return x
 
     @property
@@ -274,23 +228,16 @@ class KrylovAMGSolver(LinearSolver):
         """The state the hierarchy was built from and the rebuild rule's counters."""
         if self._built_at is None:
             return None
-        rate = np.nan if self._rate0 is None else self._rate0
         d, t, alpha, pressure = self._built_at
-        return SolverMemory(d, t, alpha, pressure=pressure, counters={"rate0": rate, "excess": self._excess, "stale": float(self._stale),
-                                                        "rate_last": np.nan if self._rate_last is None else self._rate_last},
-                            backend=self.memory_tag)
+        return SolverMemory(d, t, alpha, pressure=pressure, counters=self.policy.counters(), backend=self.memory_tag)
 
     def recall(self, system, memory: SolverMemory) -> None:
         """Build the hierarchy from the tangent at ``memory``'s state and restore the counters (a
         hierarchy the rule had marked stale is not rebuilt here: the next Newton system rebuilds it)."""
-        c = memory.counters
         self._M = None
-        if not c["stale"]:
+        if not memory.counters["stale"]:
             self.prepare(system, memory_state(system, memory))
-        self._rate0 = None if np.isnan(c["rate0"]) else float(c["rate0"])
-        self._excess, self._stale = float(c["excess"]), bool(c["stale"])
-        last = c.get("rate_last", np.nan)
-        self._rate_last = None if np.isnan(last) else float(last)
+        self.policy.restore(memory.counters)
 
     def statistics(self) -> dict:
         """Name, ``amg`` (the multigrid) and ``amg_processes``, ``preconditioner_builds`` and

@@ -96,7 +96,7 @@ class DirectSolver(LinearSolver):
 
     Reuse (``reuse=True``, :class:`ReusePolicy`): the factors of an earlier tangent K₀ are kept and
     later systems K x = r are solved by conjugate gradients on the matrix-free exact tangent
-    (:meth:`~pixmuscle.mechanics.solve.MechanicalSystem.tangent_operator`, no assembly)
+    (:meth:`~pixmuscle.mechanics.system.MechanicalSystem.tangent_operator`, no assembly)
     preconditioned with K₀⁻¹ (GMRES if K₀ was indefinite), to the tolerance the caller asks
     (inexact Newton). The tangent is refactorised at the next Newton iteration when a solve
     needed more than ``krylov_maxiter``/2 iterations, and at once when it fails to converge in

@@ -28,14 +28,14 @@ which then grows with K; the region solves after the V-cycle take those rows exa
 iterations stay flat. With ``volumetric.held: patch`` every patch pressure is an unknown.
 
 The preconditioner. M_A⁻¹ is one AMG V-cycle on K_d (the hierarchy of ``cg_amg``, built from its
-positive definite stand-in on the ±2-voxel pattern, :meth:`.MechanicalSystem.preconditioner_matrix`)
+positive definite stand-in on the ±2-voxel pattern, :meth:`~.operator.SystemOperator.preconditioner_matrix`)
 followed by
 exact sparse solves of K_d on the node regions of the boundary conditions (``region_solves``,
 :mod:`.subdomains`): the penalty rows of the end faces and bone surfaces couple every node in the
 support of a constraint point, which a point smoother cannot reduce; a multiplicative Schwarz
 correction on those thin regions (end-face slabs, bone surfaces) takes them. The diagonal of
 G M_A⁻¹ Gᵀ in Ŝ is estimated by probing with 27 colours of the patch grid (``schur: probed``, the
-default; :func:`probed_schur_diagonal`, ``probe_spacing`` = 3), once per build of the hierarchy at
+default; :func:`.mixed_method.probed_schur_diagonal`, ``probe_spacing`` = 3), once per build of the hierarchy at
 the state it is built from (27 applications of M_A⁻¹), and kept with it; ``schur: mass`` takes
 the scaled pressure mass c/(μ_p V_p) instead (c = ``schur_scale``). On the leg with the default
 penalty number, FGMRES reaches 10⁻⁶ on the first Newton system (α = 0.095), stopped on the mixed
@@ -70,8 +70,10 @@ eigenvalues), and FGMRES(60) restarted at each tightened target needed 255–294
 one basis of 200 needs 120. Where the tightened target would fall below the round-off floor of
 the mixed residual, or the true mixed residual has drifted from FGMRES's estimate of it, the
 solve refines instead (a new mixed solve for the condensed residual of the update so far, its
-target set by the lag of the last pass). Newton, line search and tolerances are those
-of the condensed system.
+target set by the lag of the last pass; :func:`.mixed_method.refine`, which ``petsc_mixed`` shares).
+Newton, line search and tolerances are those of the condensed system. The operators, the
+block-triangular preconditioner, the probed Schur diagonal and the refinement loop are those of
+:mod:`.mixed_method`; the system enters only through :class:`~.operator.SystemOperator`.
 
 References
 ----------
@@ -89,168 +91,15 @@ import time
 from dataclasses import field
 
 import numpy as np
-import scipy.sparse as sp
 
-from ..tangent import MatrixFreeTangent
-from ..volumetric import shear_moduli
 from .base import BACKENDS
 from .cg_amg import CGAMGOptions, KrylovAMGSolver
 from .fgmres import fgmres
+from .mixed_method import BlockTriangular, MixedBlocks, MixedOperator, Pass, probed_schur_diagonal, refine
 from .multigrid import drop_weak_blocks
-from .subdomains import CorrectedVCycle, RegionSolves, constraint_regions
+from .subdomains import CorrectedVCycle
 
 _LOG = logging.getLogger(__name__)
-
-
-class PatchDivergence:
-    """The patch dilatation rates G (N_p' × 3N) of a subset of patches, matrix-free.
-
-    (G x)_p = Σ_L Q_pL a_L : ∇̃x_L — the rate of the patch dilatation θ_p along x — and
-    Gᵀ q = Σ_L B̃_Lᵀ ((Qᵀ q)_L a_L).
-
-    Parameters
-    ----------
-    B, BT : ThreadedCSR (3N × N), (N × 3N)
-        Stacked smoothed-gradient operators G_J (rows J·N + L) and their transpose
-        (:class:`~..tangent.ProductForm`'s).
-    a : (N, 3, 3) float
-        a_L = J_L F_L⁻ᵀ.
-    Q : CSR (N_p', N)
-        Volume weights of the nodes of the chosen patches.
-    """
-
-    def __init__(self, B, BT, a: np.ndarray, Q: sp.csr_matrix):
-        self.B, self.BT, self.Q = B, BT, Q
-        self.n = a.shape[0]
-        self.a = np.ascontiguousarray(a)  # [L, i, J]
-        self.aT = np.ascontiguousarray(a.transpose(2, 0, 1))  # [J, L, i]
-        self.QT = Q.T.tocsr()
-
-    def __matmul__(self, x: np.ndarray) -> np.ndarray:
-        g = (self.B @ np.asarray(x).reshape(-1, 3)).reshape(3, self.n, 3)  # [J, L, i] = ∂x_i/∂X_J
-        return self.Q @ np.einsum("jli,jli->l", self.aT, g)
-
-    def sparse(self) -> sp.csr_matrix:
-        """G assembled (N_p' × 3N, columns node-major 3m + i), 1/cm."""
-        n = self.n
-        rows = [self.Q @ sum(sp.diags(self.aT[J, :, i]) @ self.B.matrix[J * n:(J + 1) * n] for J in range(3)) for i in range(3)]
-        return sp.hstack(rows).tocsr()[:, np.arange(3 * n).reshape(3, n).T.ravel()]
-
-    def T(self, q: np.ndarray) -> np.ndarray:
-        """Gᵀ q, (3N,)."""
-        t = self.QT @ q
-        return (self.BT @ (t[None, :, None] * self.aT).reshape(-1, 3)).reshape(-1)
-
-
-def probed_schur_diagonal(G: PatchDivergence, M, box: np.ndarray, spacing: int = 2) -> np.ndarray:
-    """Diagonal of G M Gᵀ (M ≈ K_d⁻¹) by probing: the patches are coloured by their box index on the
-    patch grid modulo ``spacing`` (spacing³ colours: 8 for 2, 27 for 3), and for each colour c,
-    s_p (G M Gᵀ (s ∘ 1_c))_p estimates the diagonal entry of every patch p of that colour (the
-    patches within ``spacing`` − 1 boxes, which couple most, have other colours); s is a fixed
-    random ±1 per patch. spacing³ applications of M.
-
-    The signs matter on large models. Without them each estimate adds the couplings of patch p to
-    every other patch of its colour, and the coupling decays too slowly with distance for that sum
-    to stay bounded as the model grows: on the 73,753-node leg 22 % of the patches came out 5–48
-    times their pressure-mass estimate (none at 21,169 nodes) and FGMRES needed 467 iterations,
-    more than with the mass (195). With random signs those couplings add up as noise of zero mean
-    (the probing estimator of Bekas, Kokiopoulou & Saad 2007).
-
-    On the 5k leg (2 × 2 × 3 patches) the preconditioned Schur complement then spans a ratio of
-    40 between its extreme eigenvalues (measured before the signs below), against 347 for the
-    scaled pressure mass c/(μ_p V_p) and 25 for the exact diagonal: the mass misses how much
-    softer or stiffer a patch's surroundings are than the patch itself (connective-tissue patches
-    next to muscle, partial patches at the surface).
-
-    Parameters
-    ----------
-    G : PatchDivergence
-        Rows of the patches (N_p × 3N).
-    M : object with ``@``
-        Preconditioner of the displacement block.
-    box : (N_p, 3) int
-        Box index of each patch on the patch grid.
-    spacing : int
-        Same-colour patches are ``spacing`` boxes apart along each axis (≥ 2).
-
-    Returns
-    -------
-    (N_p,) float, positive
-
-    References
-    ----------
-    C. Bekas, E. Kokiopoulou, Y. Saad, "An estimator for the diagonal of a matrix", Appl. Numer.
-    Math. 57(11–12), 1214–1229, 2007.
-    """
-    colour, sign = probe_colours(box, spacing)
-    out = np.zeros(box.shape[0])
-    for c in np.unique(colour):
-        sel = colour == c
-        out[sel] = sign[sel] * (G @ (M @ G.T(np.where(sel, sign, 0.0))))[sel]
-    tiny = 1e-12 * float(np.max(np.abs(out))) if out.size else 0.0
-    return np.maximum(np.abs(out), tiny)
-
-
-def probe_colours(box: np.ndarray, spacing: int) -> tuple[np.ndarray, np.ndarray]:
-    """Colour (0 … spacing³ − 1) and fixed random sign (±1, seed 0) of each patch for
-    :func:`probed_schur_diagonal`, from the patches' box indices ``box`` (N_p, 3) on the patch grid."""
-    colour = ((box % spacing) * np.array([spacing * spacing, spacing, 1])).sum(axis=1)
-    sign = np.where(np.random.default_rng(0).random(box.shape[0]) < 0.5, -1.0, 1.0)
-    return colour, sign
-
-
-def pressure_scale(mu: np.ndarray, vp: np.ndarray, spacing) -> float:
-    """w = mean_p(μ_p V_p) / s, N: the shear scale of the scaled mixed form (module docstring).
-
-    Parameters
-    ----------
-    mu, vp : (N_p,) float
-        Shear modulus (N/cm²) and volume (cm³) of every pressure patch.
-    spacing : (3,) float
-        Voxel edges, cm; s is the smallest.
-    """
-    return float(np.mean(mu * vp)) / float(np.min(spacing))
-
-
-def refinement_target(rtol: float, bn: float, rn: float, lag: float, floor: float) -> float:
-    """Relative target of a refinement pass: the condensed target ``rtol`` · ``bn`` asked of the
-    condensed residual ``rn`` left so far, divided by the ``lag`` (condensed residual per mixed
-    residual) the last pass showed, halved for margin; within [``floor``, 0.5]."""
-    return min(0.5, max(0.5 * rtol * bn / (rn * lag), floor))
-
-
-class _Mixed:
-    """The scaled mixed operator [K_d, w Gᵀ; w G, −w² D⁻¹] on z = [Δd; q̃]."""
-
-    def __init__(self, Kd, G: PatchDivergence, D: np.ndarray, w: float):
-        self.Kd, self.G, self.w, self.c22 = Kd, G, w, w * w / D
-        self.n = Kd.shape[0]
-
-    def __matmul__(self, z):
-        x, q = z[: self.n], z[self.n:]
-        G = self.G
-        t = G.QT @ (self.w * q)  # (Qᵀ w q)_L: w Gᵀ q is Σ_L B̃_Lᵀ (t_L a_L), added to K_d's stress
-        seen = []
-
-        def pressure_stress(grad):  # grad[L, i, J]; one gradient product serves K_d x and G x
-            seen.append(grad)
-            return t[:, None, None] * G.a
-
-        y = self.Kd.apply(x, extra=pressure_stress)
-        gx = G.Q @ np.einsum("lij,lij->l", G.a, seen[0])
-        return np.concatenate([y, self.w * gx - self.c22 * q])
-
-
-class _BlockTriangular:
-    """P⁻¹ for P = [M_A, w Gᵀ; 0, −Ŝ]: q̃ = −u₂/Ŝ, Δd = M_A⁻¹ (u₁ − w Gᵀ q̃)."""
-
-    def __init__(self, MA, G: PatchDivergence, shat: np.ndarray, w: float, n: int):
-        self.MA, self.G, self.shat, self.w, self.n = MA, G, shat, w, n
-
-    def __matmul__(self, u):
-        q = -u[self.n:] / self.shat
-        x = self.MA @ (u[: self.n] - self.w * self.G.T(q))
-        return np.concatenate([x, q])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -281,7 +130,7 @@ class MixedBlockSolver(KrylovAMGSolver):
     restart : int
         FGMRES basis size.
     schur : {"probed", "mass"}
-        Diagonal Schur approximation: ``probed`` (default, :func:`probed_schur_diagonal`) or the
+        Diagonal Schur approximation: ``probed`` (default, :func:`.mixed_method.probed_schur_diagonal`) or the
         scaled pressure mass c/(μ_p V_p).
     probe_spacing : int
         With ``schur="probed"``: colour spacing of the probe on the patch grid (spacing³
@@ -312,49 +161,39 @@ class MixedBlockSolver(KrylovAMGSolver):
         self.region_solves = region_solves
         self.schur = schur
         self.probe_spacing = probe_spacing
-        self._mu_node = None
         self._regions = None
         self._press = None
         self._probe = None
         self._mixed = None  # (mixed operator, preconditioner) of the prepared system
+        self._blocks = None  # its MixedBlocks
         self.info.update(region_nodes=0)
 
     def _stand_in(self):
         return drop_weak_blocks(self._system.preconditioner_matrix(self._state, self.reach, volumetric="held"),
                                 self.drop_tol)
 
-    def _patch_divergence(self) -> tuple[PatchDivergence, np.ndarray]:
-        """G of the free patches at the prepared state, and their indices."""
-        vol = self._system.volumetric
-        if self._press is None:
-            self._press = np.flatnonzero(~vol.held)
-        main = self._A.main
-        return PatchDivergence(main.B, main.BT, self._state.vol.a, vol.Q[self._press]), self._press
+    def _patch_divergence(self):
+        """G of the free patches at the prepared state."""
+        return self._system.patch_divergence(self._state, self._press)
 
     def prepare(self, system, state):
         super().prepare(system, state)
-        vol = system.volumetric
+        space = system.pressure_space()
         self._mixed = None
-        if vol is None:
+        if space is None:
             return
-        if self._mu_node is None:
-            self._mu_node = shear_moduli(system.A0)
-        full = self._A
-        Kd = MatrixFreeTangent(full.main, full.C, stab=full.stab, penalty=full.penalty,
-                               volumetric=(vol.restricted(vol.held), state.vol))
-        G, press = self._patch_divergence()
-        vp, kbar = vol.vp[press], vol.kbar[press]
-        mu = vol.Q[press] @ self._mu_node
-        D = vp * kbar
-        w = system.pressure_weight
-        self._mixed = (_Mixed(Kd, G, D, w), _BlockTriangular(self._M, G, self._schur_diagonal(D, w, mu, vp), w,
-                                                             Kd.shape[0]))
+        self._press = space.free
+        Kd = system.displacement_operator(state, tangent=self._A)
+        G = self._patch_divergence()
+        blocks = MixedBlocks(space, self._press)
+        self._mixed = (MixedOperator(Kd, G, blocks.c22, blocks.w),
+                       BlockTriangular(self._M, G, self._schur_diagonal(blocks), blocks.w, Kd.shape[0]))
+        self._blocks = blocks
 
-    def _schur_diagonal(self, D, w, mu, vp) -> np.ndarray:
-        """Ŝ = w² (D⁻¹ + diag(G M Gᵀ)) with the diagonal probed at the last build, or the scaled mass."""
-        if self.schur == "probed":
-            return w * w * (1.0 / D + self._probe)
-        return w * w * (1.0 / D + self.schur_scale / (mu * vp))
+    def _schur_diagonal(self, blocks: MixedBlocks) -> np.ndarray:
+        """Ŝ with the diagonal of G M Gᵀ probed at the last build, or the scaled mass."""
+        probe = None if self._probe is None else blocks.w * blocks.w * self._probe
+        return blocks.schur(self.schur, self.schur_scale, probe)
 
     def _build(self):
         if self._mixed is not None:  # the last system's preconditioner holds the old hierarchy: let it go first
@@ -362,32 +201,30 @@ class MixedBlockSolver(KrylovAMGSolver):
         if self._regions is not None:  # and the region rows, which update() assembles again
             self._regions.release()
         super()._build()
-        vol = self._system.volumetric  # prepare() sets the system before any build
-        if vol is None:
+        space = self._system.pressure_space()  # prepare() sets the system before any build
+        if space is None:
             return
         t0 = time.perf_counter()
         if self.region_solves:
             if self._regions is None:
-                self._regions = RegionSolves(self._system, constraint_regions(self._system, vol.held[vol.patch_of]),
-                                             self.ijk)
+                self._regions = self._system.region_solves(self._system.stiff_regions(), self.ijk)
                 self.info["region_nodes"] = self._regions.n_nodes
             self._regions.update(self._state)
             self._M = CorrectedVCycle(self._M, self._regions)
         if self.schur == "probed":  # diag(G M Gᵀ) of this hierarchy, at the state it is built from
-            G, press = self._patch_divergence()
-            box = np.zeros((vol.n_patches, 3), np.int64)
-            box[vol.patch_of] = np.asarray(self.ijk) // np.asarray(vol.patch)
-            self._probe = probed_schur_diagonal(G, self._M, box[press], self.probe_spacing)
+            self._press = space.free
+            self._probe = probed_schur_diagonal(self._patch_divergence(), self._M, space.box[space.free],
+                                                self.probe_spacing)
         self.info["setup_s"] += time.perf_counter() - t0
         self.info["build_s"][-1] += time.perf_counter() - t0
 
     def _refresh(self):
         """After a rebuild of the AMG hierarchy the preconditioner must use the new one."""
         if self._mixed is not None:
-            A, P = self._mixed
+            P = self._mixed[1]
             P.MA = self._M
             if self.schur == "probed":
-                P.shat = A.c22 + A.w * A.w * self._probe
+                P.shat = self._schur_diagonal(self._blocks)
 
     def solve(self, r, rtol=None):
         if self._mixed is None:
@@ -400,49 +237,41 @@ class MixedBlockSolver(KrylovAMGSolver):
         bn = float(np.linalg.norm(b))
         A, P = self._mixed
         floor = 1e-10  # round-off floor of the mixed residual, relative
-        total, stale, status, x, lag = 0, 0, "maxiter", np.zeros(n), 1.0
-        for attempt in range(8):  # refinements, when the condensed residual needs a mixed one below the floor
-            rhs = np.concatenate([b - self._A @ x if attempt else b, np.zeros(A.c22.size)])
-            rn = float(np.linalg.norm(rhs))
-            verdict = {"lag": lag}
+        stale = [0]
 
-            def check(z, x=x, rhs=rhs, rn=rn, verdict=verdict):
+        def mixed_pass(res, x, target, lag, budget, attempt) -> Pass:
+            rhs = np.concatenate([res, np.zeros(A.c22.size)])
+            rn = float(np.linalg.norm(rhs))
+            verdict = {"lag": lag, "target": target}
+
+            def check(z):
                 """The exact condensed residual decides: None accepts z, else the tightened target."""
                 new = float(np.linalg.norm(b - self._A @ (x + z[:n])))
                 if new <= rtol * bn or bn == 0.0:
                     return None
                 mixed = float(np.linalg.norm(rhs - A @ z)) / rn
                 verdict["lag"] = new / max(mixed * rn, 1e-300)  # condensed residual per mixed residual
-                target = mixed * 0.5 * rtol * bn / new
+                tight = mixed * 0.5 * rtol * bn / new
                 # refine below the round-off floor, or where the true mixed residual has drifted from
                 # FGMRES's estimate of it (the basis has lost orthogonality: going on cannot gain)
-                if target < floor or mixed > 10.0 * verdict["target"]:
+                if tight < floor or mixed > 10.0 * verdict["target"]:
                     verdict["refine"] = True
                     return None
-                verdict["target"] = target
-                return target
+                verdict["target"] = tight
+                return tight
 
-            # a refinement's target: the lag the last pass showed foretells this one's
-            target = rtol if not attempt else refinement_target(rtol, bn, rn, lag, floor)
-            verdict["target"] = target
             if attempt:
-                z, its, status = fgmres(A, rhs, P, target, self.maxiter - total, restart=self.restart,
-                                        check=check, flexible=False)
+                z, its, status = fgmres(A, rhs, P, target, budget, restart=self.restart, check=check, flexible=False)
             else:
-                def fresh_verdict(lag=lag, target=target, verdict=verdict):
+                def fresh_verdict():
                     verdict.clear()  # the new preconditioner's iterations show their own lag
                     verdict.update(lag=lag, target=target)
 
-                z, its, status, stale = self._fgmres_or_rebuild(rhs, target, rtol, check, fresh_verdict)
-            total += its
-            x = x + z[:n]
-            if status != "converged" or not verdict.get("refine"):
-                break
-            lag = verdict["lag"]
-            if total >= self.maxiter:
-                status = "maxiter"
-                break
-        self._close(t0, setup0, status, total, stale, rtol)
+                z, its, status, stale[0] = self._fgmres_or_rebuild(rhs, target, rtol, check, fresh_verdict)
+            return Pass(z[:n], its, status, verdict["lag"] if verdict.get("refine") else None)
+
+        x, total, status, _ = refine(mixed_pass, lambda x: b - self._A @ x, b, rtol, self.maxiter, floor)
+        self._close(t0, setup0, status, total, stale[0], rtol)
         return x
 
     def solve_mixed(self, r: np.ndarray, rp: np.ndarray, rtol=None) -> tuple[np.ndarray, np.ndarray | None]:
@@ -456,7 +285,7 @@ class MixedBlockSolver(KrylovAMGSolver):
         Parameters
         ----------
         r : (3N,) float
-            Force residual with the carried patch pressure, N (:meth:`~..solve.MechanicalSystem.mixed_residual`).
+            Force residual with the carried patch pressure, N (:meth:`~..system.MechanicalSystem.mixed_residual`).
         rp : (N_p,) float
             Pressure residual θ_p − 1 − p_p/K̄_p of every patch (0 at held ones), dimensionless.
         rtol : float, optional
@@ -475,14 +304,11 @@ class MixedBlockSolver(KrylovAMGSolver):
         setup0 = self.info["setup_s"]
         rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
         A, P = self._mixed
-        press = self._press
-        rhs = np.concatenate([np.asarray(r, float), -A.w * np.asarray(rp, float)[press]])
+        space = self._system.pressure_space()
+        rhs = np.concatenate([np.asarray(r, float), space.scaled_rhs(rp, self._press)])
         z, total, status, stale = self._fgmres_or_rebuild(rhs, rtol, rtol)
         self._close(t0, setup0, status, total, stale, rtol)
-        n = A.n
-        dp = np.zeros(np.asarray(rp).size)
-        dp[press] = A.w * z[n:] / self._system.volumetric.vp[press]
-        return z[:n], dp
+        return z[:A.n], space.update(z[A.n:], self._press)
 
     def _fgmres_or_rebuild(self, rhs, target, rtol, check=None, on_rebuild=None):
         """FGMRES on the mixed system with the kept preconditioner, within its budget for ``rtol``;
@@ -490,16 +316,16 @@ class MixedBlockSolver(KrylovAMGSolver):
         it and go on from the iterate reached (a restart from zero would throw its residual
         reduction away). Returns (z, iterations, status, iterations of the stale preconditioner)."""
         A, P = self._mixed
-        z, its, status = fgmres(A, rhs, P, target, self._budget(rtol), restart=self.restart, check=check,
+        z, its, status = fgmres(A, rhs, P, target, self.policy.budget(rtol), restart=self.restart, check=check,
                                 flexible=False)
-        if status != "maxiter" or self._fresh or its >= self.maxiter:
+        if not self.policy.may_rebuild(status, its):
             return z, its, status, 0
         _LOG.debug("FGMRES: %d iterations with a kept preconditioner cost more than a rebuild; rebuilding it", its)
         self._build()
         self._refresh()
         if on_rebuild is not None:
             on_rebuild()
-        z, more, status = fgmres(A, rhs, P, target, self._retry_budget(rtol, its), restart=self.restart,
+        z, more, status = fgmres(A, rhs, P, target, self.policy.retry_budget(rtol, its), restart=self.restart,
                                  x0=z, check=check, flexible=False)
         return z, its + more, status, its
 
@@ -511,5 +337,5 @@ class MixedBlockSolver(KrylovAMGSolver):
         if status != "converged":
             raise self._fail("FGMRES", status, total, rtol)
         if not stale:  # a solve continued after a rebuild does not show the new hierarchy's rate: the next one does
-            self._account(total, rtol)
+            self.policy.account(total, rtol)
 

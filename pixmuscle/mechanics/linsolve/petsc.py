@@ -1,8 +1,8 @@
 """Backend ``petsc``: the Newton systems solved by PETSc (petsc4py), on one or several MPI ranks.
 
 The nodes are cut into slabs of voxel slices (:func:`slab_partition`), one slab per rank; each
-rank assembles the tangent rows of its own nodes (:class:`.rows.RowAssembler`: its nodes plus a
-halo of one support radius) into a distributed PETSc AIJ matrix (block size 3), so no rank holds
+rank assembles the tangent rows of its own nodes (:meth:`.operator.SystemOperator.owned_rows`: its
+nodes plus a halo of one support radius) into a distributed PETSc AIJ matrix (block size 3), so no rank holds
 the whole tangent. The system is solved with a PETSc Krylov method, by default
 GMRES (the tangent of activated muscle is symmetric but
 indefinite) preconditioned by PETSc's smoothed-aggregation multigrid (GAMG) with the six rigid-body
@@ -154,9 +154,7 @@ class PETScSolver(LinearSolver):
         PETSc = self.PETSc
         t0 = time.perf_counter()
         if self._rows is None:
-            from .rows import RowAssembler
-
-            self._rows = RowAssembler(system, self.owned)
+            self._rows = system.owned_rows(self.owned)
             self.info["halo_cells"] = int(self._rows.cells.size - self.owned.size)
         K = self._rows.rows(state)
         A = self._displacement_matrix(K)

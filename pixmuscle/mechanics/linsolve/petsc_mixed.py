@@ -75,7 +75,7 @@ A condensed update (:meth:`PETScMixedSolver.solve`) asks for a relative residual
 mixed iterate, r − K Δd = r₁ + Gᵀ (D/w) r₂, can exceed the mixed one by up to K/μ (the pressure rows
 are weighted by D/w). So the mixed system is solved to the requested tolerance, the condensed
 residual of the update is computed with the matrix-free condensed tangent (replicated on every rank,
-:meth:`~pixmuscle.mechanics.solve.MechanicalSystem.tangent_operator`), and while it is too large the
+:meth:`~pixmuscle.mechanics.system.MechanicalSystem.tangent_operator`), and while it is too large the
 update is refined: a new mixed solve for the condensed residual so far, to a target tightened by the
 lag (condensed residual per mixed residual) the previous pass showed, at most eight passes.
 
@@ -102,13 +102,11 @@ from dataclasses import field
 import numpy as np
 
 from ...errors import SolverError
-from ..volumetric import shear_moduli
 from . import multigrid
 from .base import BACKENDS
-from .mixed import PatchDivergence, probe_colours, refinement_target
+from .mixed_method import MixedBlocks, Pass, probe_colours, probe_diagonal, refine
 from .petsc import DEFAULT_OPTIONS as CONDENSED_OPTIONS
 from .petsc import PETScOptions, PETScSolver, set_options
-from .subdomains import constraint_regions
 
 #: PETSc options of the mixed solve unless ``petsc_options`` sets them (prefix ``pixmuscle_mixed_``)
 DEFAULT_OPTIONS = {"ksp_type": "fgmres", "ksp_gmres_restart": 200, "pc_type": "fieldsplit",
@@ -201,6 +199,7 @@ class PETScMixedSolver(PETScSolver):
         self._gather = None
         self._pgather = None
         self._regions = None
+        self._space = None
         self.info.update(refinements=0, pressures=0, region_rows=0)
 
     @classmethod
@@ -211,36 +210,33 @@ class PETScMixedSolver(PETScSolver):
                    schur_scale=opts.schur_scale, region_solves=opts.region_solves, schur=opts.schur,
                    probe_spacing=opts.probe_spacing)
 
-    def _pressure_partition(self, vol):
+    def _pressure_partition(self, space):
         """PETSc order of the pressure unknowns: the free patches by owning rank (the lowest rank
         among their nodes). Returns the free patches in that order and the bounds per rank."""
         rank_of_node = np.empty(self.dof.size // 3, np.int64)
         rank_of_node[self.order] = np.repeat(np.arange(self.size), np.diff(self.bounds))
-        owner = np.full(vol.n_patches, self.size, np.int64)
-        np.minimum.at(owner, vol.patch_of, rank_of_node)
-        free = np.flatnonzero(~vol.held)
+        owner = np.full(space.n_patches, self.size, np.int64)
+        np.minimum.at(owner, space.patch_of, rank_of_node)
+        free = space.free
         by_rank = np.argsort(owner[free], kind="stable")
         patches = free[by_rank]
         bounds = np.searchsorted(owner[patches], np.arange(self.size + 1), side="left")
         return patches, bounds
 
     def prepare(self, system, state):
-        vol = system.volumetric
-        if vol is None or state.vol is None or bool(np.all(vol.held)):
+        space = system.pressure_space()
+        if space is None or space.free.size == 0:
             self._mixed = None
             super().prepare(system, state)
             return
         PETSc = self.PETSc
         t0 = time.perf_counter()
         if self._rows is None:
-            from .rows import RowAssembler
-
-            self._rows = RowAssembler(system, self.owned)
+            self._rows = system.owned_rows(self.owned)
             self.info["halo_cells"] = int(self._rows.cells.size - self.owned.size)
         if self._press is None:
-            patches, bounds = self._pressure_partition(vol)
+            patches, bounds = self._pressure_partition(space)
             self._press = (patches, bounds, patches[bounds[self.rank]:bounds[self.rank + 1]])
-            self._mu_node = shear_moduli(system.A0)
             self.info["pressures"] = int(patches.size)
         patches, pbounds, mine = self._press
         n_loc, n = self.hi - self.lo, self.dof.size
@@ -250,13 +246,9 @@ class PETScMixedSolver(PETScSolver):
         Kd = self._rows.rows(state, pressure_free=True)
         A00 = self._displacement_matrix(Kd)
         full = system.tangent_operator(state)  # the condensed tangent, matrix-free: the stopping test
-        Q = vol.Q[mine]
-        vp, kbar = vol.vp[mine], vol.kbar[mine]
-        self._vp = vol.vp
-        mu = Q @ self._mu_node
-        D = vp * kbar
-        w = system.pressure_weight  # from all free patches: every rank has the same number
-        G = (w * PatchDivergence(full.main.B, full.main.BT, state.vol.a, Q).sparse()).tocsr()
+        blocks = MixedBlocks(space, mine)  # w from all free patches: every rank has the same number
+        w = blocks.w
+        G = (w * system.patch_divergence(state, mine).sparse()).tocsr()
         G.indices = self.pos[G.indices]
         G.has_sorted_indices = False
         G.sort_indices()
@@ -264,8 +256,8 @@ class PETScMixedSolver(PETScSolver):
                                     csr=(G.indptr.astype(PETSc.IntType), G.indices.astype(PETSc.IntType), G.data))
         A10.assemble()
         A01 = A10.transpose(PETSc.Mat())  # a new matrix (without one petsc4py transposes in place)
-        A11 = self._diagonal(-w * w / D, p0, m)
-        S = self._diagonal(-w * w * (1.0 / D + self.schur_scale / (mu * vp)), p0, m)  # −Ŝ: S itself is negative
+        A11 = self._diagonal(-blocks.c22, p0, m)
+        S = self._diagonal(-blocks.schur("mass", self.schur_scale), p0, m)  # −Ŝ: S itself is negative
         A = PETSc.Mat().createNest([[A00, A01], [A10, A11]], comm=self.comm)
         A.assemble()
 
@@ -285,7 +277,7 @@ class PETScMixedSolver(PETScSolver):
         ksp.setFromOptions()
         self._set_region_subdomains(system, pc)
         if self.schur == "probed":
-            self._probe_schur(vol, pc, A01, A10, S, w * w / D, mine)
+            self._probe_schur(space, pc, A01, A10, S, blocks, mine)
         b = PETSc.Vec().createMPI((n_loc + m_loc, PETSc.DECIDE), comm=self.comm)  # per rank: [u; p] owned
         z = b.duplicate()
         start = b.getOwnershipRange()[0]
@@ -295,6 +287,7 @@ class PETScMixedSolver(PETScSolver):
         if self._pgather is None:  # and its pressure part
             xp = PETSc.Vec().createMPI((m_loc, m), comm=self.comm)
             self._pgather = (xp, *PETSc.Scatter.toAll(xp))
+        self._space = space
         self._mixed = {"ksp": ksp, "A": A, "b": b, "z": z, "t": b.duplicate(), "u": isu.getIndices() - start,
                        "p": isp.getIndices() - start, "w": w, "K": full, "blocks": (A00, A01, A10, A11, S)}
         self.info["preconditioner_builds"] += 1
@@ -313,9 +306,8 @@ class PETScMixedSolver(PETScSolver):
             return
         PETSc = self.PETSc
         if self._regions is None:
-            vol = system.volumetric
             sets = []
-            for nodes in constraint_regions(system, vol.held[vol.patch_of]):
+            for nodes in system.stiff_regions():
                 rows = self.pos[(3 * nodes[:, None] + np.arange(3)).ravel()]
                 rows = np.sort(rows[(rows >= self.lo) & (rows < self.hi)])
                 if rows.size:
@@ -334,35 +326,35 @@ class PETScMixedSolver(PETScSolver):
                       for r in self._regions or [np.empty(0, PETSc.IntType)]]
         asm.setASMLocalSubdomains(len(subdomains), subdomains)
 
-    def _probe_schur(self, vol, pc, A01, A10, S, c22: np.ndarray, mine: np.ndarray) -> None:
-        """Set −Ŝ = −(w² D⁻¹ + diag(w² G M Gᵀ)) in ``S``, the diagonal probed as in
-        :func:`.mixed.probed_schur_diagonal` (same colours and signs, so one rank and several give
-        the same numbers) with M the displacement split's preconditioner, applied outside the KSP.
-        ``c22`` (owned patches) is w² D⁻¹."""
+    def _probe_schur(self, space, pc, A01, A10, S, blocks: MixedBlocks, mine: np.ndarray) -> None:
+        """Set −Ŝ in ``S``, the diagonal of w² G M Gᵀ probed as in
+        :func:`.mixed_method.probed_schur_diagonal` (same colours and signs, so one rank and several
+        give the same numbers) with M the displacement split's preconditioner, applied outside the KSP."""
         PETSc = self.PETSc
         pc.setUp()
         upc = pc.getFieldSplitSubKSP()[0].getPC()
         upc.setUp()
-        box = np.zeros((vol.n_patches, 3), np.int64)
-        box[vol.patch_of] = np.asarray(self.ijk) // np.asarray(vol.patch)
-        free = np.flatnonzero(~vol.held)  # mixed_amg's probe colours the free patches, in order
-        colour, sign = np.zeros(vol.n_patches, np.int64), np.zeros(vol.n_patches)
-        colour[free], sign[free] = probe_colours(box[free], self.probe_spacing)
-        colour, sign = colour[mine], sign[mine]
+        free = space.free  # mixed_amg's probe colours the free patches, in order
+        colour, sign = np.zeros(space.n_patches, np.int64), np.zeros(space.n_patches)
+        colour[free], sign[free] = probe_colours(space.box[free], self.probe_spacing)
         q, g = A10.createVecLeft(), A10.createVecLeft()
         u, y = A01.createVecLeft(), A01.createVecLeft()
-        out = np.zeros(mine.size)
-        for c in range(self.probe_spacing ** 3):  # every rank takes every colour: the products are collective
-            sel = colour == c
-            q.setArray(np.where(sel, sign, 0.0))
+
+        def product(qv):  # w G M w Gᵀ q on the owned patches (collective)
+            q.setArray(qv)
             A01.mult(q, u)
             upc.apply(u, y)
             A10.mult(y, g)
-            out[sel] = sign[sel] * g.getArray()[sel]
-        g.setArray(out)
-        out = np.maximum(np.abs(out), 1e-12 * g.norm(PETSc.NormType.INFINITY))  # the largest over all ranks
+            return g.getArray().copy()
+
+        def largest(out):  # the largest |estimate| over all ranks
+            g.setArray(out)
+            return g.norm(PETSc.NormType.INFINITY)
+
+        # every rank takes every colour: the products are collective
+        probe = probe_diagonal(product, colour[mine], sign[mine], range(self.probe_spacing ** 3), largest)
         diag = S.createVecLeft()
-        diag.setArray(-(c22 + out))
+        diag.setArray(-blocks.schur("probed", self.schur_scale, probe))
         S.setDiagonal(diag)
         for v in (q, g, u, y, diag):
             v.destroy()
@@ -384,60 +376,53 @@ class PETScMixedSolver(PETScSolver):
         rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
         mx = self._mixed
         ksp, A, b, z, t, iu, K = mx["ksp"], mx["A"], mx["b"], mx["z"], mx["t"], mx["u"], mx["K"]
-        r = np.asarray(r, float)
-        rr = r.ravel()
+        rr = np.asarray(r, float).ravel()
         bn = float(np.linalg.norm(rr))
-        x = np.zeros(rr.size)
         own = self.dof[self.lo:self.hi]
-        total, lag, status, passes = 0, 1.0, "maxiter", 0
-        res, rn = rr, bn
         self.info["passes"] = []  # (mixed target, iterations, condensed relative residual after) per pass
-        while passes < 8 and total < self.maxiter:
-            if rn <= rtol * bn:
-                status = "converged"
-                break
-            # the first pass asks the mixed residual for the condensed target; a refinement asks for
-            # what the lag of the last pass says the condensed target needs
-            target = rtol if passes == 0 else refinement_target(rtol, bn, rn, lag, _FLOOR)
+
+        def mixed_pass(res, x, target, lag, budget, attempt) -> Pass:
             barr = b.getArray()
             barr[:] = 0.0
             barr[iu] = res[own]
             b.setArray(barr)
-            ksp.setTolerances(rtol=target, atol=0.0, max_it=self.maxiter - total)
+            ksp.setTolerances(rtol=target, atol=0.0, max_it=budget)
             ksp.solve(b, z)
-            its = int(ksp.getIterationNumber())
-            reason = int(ksp.getConvergedReason())
-            total += its
-            passes += 1
+            its, reason = int(ksp.getIterationNumber()), int(ksp.getConvergedReason())
+            dx = np.zeros(rr.size)
             if reason < 0:
-                status = f"diverged (PETSc reason {reason})"
-                break
+                return Pass(dx, its, f"diverged (PETSc reason {reason})")
             A.mult(z, t)
             t.aypx(-1.0, b)  # t = b − A z, the true mixed residual
             mixed = t.norm()
-            xu, gather, xall = self._gather
-            xu.setArray(z.getArray()[iu])
-            gather.scatter(xu, xall, addv=False, mode=self.PETSc.ScatterMode.FORWARD)
-            x[self.dof] += xall.getArray()
-            res = rr - K @ x
-            new = float(np.linalg.norm(res))
-            lag = new / max(mixed, 1e-300)  # condensed residual per mixed residual
+            dx[self.dof] = self._gathered(z.getArray()[iu])
+            left = rr - K @ (x + dx)
+            new = float(np.linalg.norm(left))
             self.info["passes"].append((target, its, new / max(bn, 1e-300)))
-            rn = new
-        else:
-            if rn <= rtol * bn:
-                status = "converged"
+            if new <= rtol * bn:
+                return Pass(dx, its, "converged", residual=left)
+            return Pass(dx, its, "converged", lag=new / max(mixed, 1e-300), residual=left)  # condensed per mixed
+
+        x, total, status, passes = refine(mixed_pass, lambda x: rr - K @ x, rr, rtol, self.maxiter, _FLOOR)
         self.info["iterations"] = total
         self.info["krylov_iterations"] += total
         self.info["refinements"] += max(passes - 1, 0)
         self.info["solve_s"] = time.perf_counter() - t0
         if status != "converged":
+            rn = float(np.linalg.norm(rr - K @ x))
             amg = "fieldsplit_u_sub_0_pc_type" if self.region_solves else "fieldsplit_u_pc_type"
             raise SolverError(f"petsc_mixed: KSP fgmres with the Schur field split {status} after {total} iterations "
                               f"in {passes} passes (condensed relative residual {rn / max(bn, 1e-300):.1e}, target "
                               f"{rtol:.1e}); try solver.petsc_options {{{amg}: hypre}} or the "
                               "condensed backend petsc, or check the boundary conditions")
-        return x.reshape(r.shape)
+        return x.reshape(np.shape(r))
+
+    def _gathered(self, owned: np.ndarray) -> np.ndarray:
+        """The displacement part of a solution (owned rows, PETSc order) on every rank, in PETSc order."""
+        xu, gather, xall = self._gather
+        xu.setArray(owned)
+        gather.scatter(xu, xall, addv=False, mode=self.PETSc.ScatterMode.FORWARD)
+        return xall.getArray()
 
     def solve_mixed(self, r, rp, rtol=None):
         """One update of Newton on the mixed form, as :meth:`.mixed.MixedBlockSolver.solve_mixed`: the
@@ -449,27 +434,22 @@ class PETScMixedSolver(PETScSolver):
         t0 = time.perf_counter()
         rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
         mx = self._mixed
-        ksp, b, z, w = mx["ksp"], mx["b"], mx["z"], mx["w"]
+        ksp, b, z = mx["ksp"], mx["b"], mx["z"]
         patches, _, mine = self._press
         barr = b.getArray()
         barr[mx["u"]] = np.asarray(r, float).ravel()[self.dof[self.lo:self.hi]]
-        barr[mx["p"]] = -w * np.asarray(rp, float)[mine]
+        barr[mx["p"]] = self._space.scaled_rhs(rp, mine)
         b.setArray(barr)
         ksp.setTolerances(rtol=rtol, atol=0.0, max_it=self.maxiter)
         ksp.solve(b, z)
         its, reason = int(ksp.getIterationNumber()), int(ksp.getConvergedReason())
         zarr = z.getArray()
-        scatter = self.PETSc.ScatterMode.FORWARD
-        xu, gather, xall = self._gather
-        xu.setArray(zarr[mx["u"]])
-        gather.scatter(xu, xall, addv=False, mode=scatter)
         x = np.zeros(np.asarray(r).size)
-        x[self.dof] = xall.getArray()
+        x[self.dof] = self._gathered(zarr[mx["u"]])
         xp, pgather, pall = self._pgather
         xp.setArray(zarr[mx["p"]])
-        pgather.scatter(xp, pall, addv=False, mode=scatter)
-        dp = np.zeros(np.asarray(rp).size)
-        dp[patches] = w * pall.getArray() / self._vp[patches]
+        pgather.scatter(xp, pall, addv=False, mode=self.PETSc.ScatterMode.FORWARD)
+        dp = self._space.update(pall.getArray(), patches)
         self.info["iterations"] = its
         self.info["krylov_iterations"] += its
         self.info["solve_s"] = time.perf_counter() - t0

@@ -29,10 +29,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..assembly import strong_entries
-from ..tangent import RowProduct
-from ..threaded import ThreadedCSR
+from ..rows import RowAssembler
+from ..tangent import RowProduct, RowSubset
 from .factorization import ENGINES, engine_name
-from .rows import RowAssembler
 
 #: a node enters the region of a constraint point where its shape function there is at least this
 #: fraction of the point's largest; 0: every node of the point's support
@@ -87,6 +86,10 @@ class RegionSolves:
     alone, :class:`.rows.RowAssembler` with ``square``) and applies its rows of K_d matrix-free
     (:class:`~..tangent.RowProduct` over the cells around the region, the NSNI rows, the penalty
     rows), so the region rows themselves (78 M non-zeros, 0.94 GB on the 74k leg) are never stored.
+    The NSNI, penalty and gradient rows are products with the system's own operators
+    (:class:`~..tangent.RowSubset`), and the block's assembler lives only while :meth:`update`
+    factorises (the factors keep what they need of its pattern): on the 21k leg the regions held
+    0.30 GB before, 0.17 GB so (the factors are most of it).
 
     Parameters
     ----------
@@ -106,16 +109,19 @@ class RegionSolves:
             dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
             factor = ENGINES[engine_name(engine)](ijk=np.asarray(ijk)[nodes], width=(4, 4, 4))
             stab = system.stab.rows(nodes) if system.stab is not None else None
-            pen = [ThreadedCSR(sp.csr_matrix(P)[nodes]) for P in system.penalty]
-            self.parts.append(_Region(nodes, dofs, RowAssembler(system, nodes, square=True), factor,
-                                      RowProduct(system.product_form, nodes), stab, pen))
+            pen = [RowSubset(P, nodes) for P in system.penalty]
+            self.parts.append(_Region(nodes, dofs, None, factor, RowProduct(system.product_form, nodes), stab, pen))
 
     def update(self, state) -> None:
-        """Factorise the regions' diagonal blocks of K_d at ``state`` and keep the moduli of their rows."""
+        """Factorise the regions' diagonal blocks of K_d at ``state`` and keep the moduli of their rows.
+
+        Each block is assembled on a pattern made for it here and let go once it is factorised."""
         C = self.system.displacement_moduli(state)
         for part in self.parts:
             part.C = np.ascontiguousarray(C[part.rows.cells])
-            part.factor.factorize(part.asm.block(state, pressure_free=True))
+            asm = part.asm if part.asm is not None else RowAssembler(self.system, part.nodes, square=True)
+            part.factor.factorize(asm.block(state, pressure_free=True))
+            del asm
 
     def release(self) -> None:
         """Drop the moduli kept for the rows and the numerical factors until the next :meth:`update`
@@ -139,11 +145,12 @@ class RegionSolves:
 
 @dataclasses.dataclass(eq=False)
 class _Region:
-    """One region: nodes, dofs, block assembler, factors, and its rows of K_d as products."""
+    """One region: nodes, dofs, block assembler (None: made at each factorisation), factors, and its
+    rows of K_d as products."""
 
     nodes: np.ndarray
     dofs: np.ndarray
-    asm: RowAssembler
+    asm: RowAssembler | None
     factor: object
     rows: RowProduct
     stab: object

@@ -7,7 +7,8 @@ node (and, with the projected energy, every cell of the patches among them): the
 a halo of about one support radius. :class:`RowAssembler` builds the block pattern of the owned
 rows with :class:`~pixmuscle.mechanics.assembly.Assembler` on the restricted cell–node support
 (``rows``: the halo rows are never formed, so the memory is that of the owned rows) and fills it
-with the same kernels as the whole tangent.
+with the same kernels as the whole tangent. The system hands them to the solvers
+(:meth:`~pixmuscle.mechanics.system.MechanicalSystem.owned_rows`).
 """
 
 from __future__ import annotations
@@ -15,12 +16,12 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..assembly import Assembler
-from ..stabilization import gradient_differences, second_moments, stabilization_modulus
+from .assembly import Assembler
+from .stabilization import gradient_differences, second_moments, stabilization_modulus
 
 
 class RowAssembler:
-    """Tangent rows of the owned nodes of a :class:`~pixmuscle.mechanics.solve.MechanicalSystem`.
+    """Tangent rows of the owned nodes of a :class:`~pixmuscle.mechanics.system.MechanicalSystem`.
 
     Parameters
     ----------
@@ -39,10 +40,7 @@ class RowAssembler:
 
     def __init__(self, system, owned: np.ndarray, square: bool = False):
         scni = system.scni
-        n = system.n_nodes
         self.owned = np.asarray(owned, np.int64)
-        mask = np.zeros(n, bool)
-        mask[self.owned] = True
         S = system.support
         touch = np.asarray(S[:, self.owned].sum(axis=1)).ravel() > 0
         vol = system.volumetric
@@ -61,16 +59,14 @@ class RowAssembler:
             raise ValueError("a square RowAssembler needs sorted, distinct owned nodes")
         self.square = square
         self.asm = Assembler(Sc, patches=patches, rows=self.owned, square=square)  # the owned block rows only
-        self.g = self.asm.on_support([G[self.cells] for G in scni.G])
-        keep = sp.diags(mask.astype(float))
-        self._penalty = []  # the owned rows of the penalty stiffness per component
-        for Kj in system.penalty:
-            Kr = (keep @ sp.csr_matrix(Kj)).tocsr()
-            Kr.eliminate_zeros()
-            self._penalty.append(Kr)
+        # the cells' entries in the system's support layout: their gradients are gathered from it at
+        # each fill (:meth:`gradients`), not kept
+        start = S.indptr[self.cells].astype(np.int64)
+        count = np.diff(S.indptr)[self.cells].astype(np.int64)
+        self._entries = (start, count)
         self._stab = None  # NSNI: the rows of the scalar operator, or (its gradient differences, moduli) on this pattern
         if system.stab is not None and system.stab.scalar:
-            self._stab = system.stab.L.matrix
+            self._stab = system.stab.L.rows_matrix(self.owned)  # the owned rows only
         elif system.stab is not None:
             st = system.stabilization
             As = stabilization_modulus(system.A0, st.modulus)[self.cells]
@@ -86,7 +82,7 @@ class RowAssembler:
         """The owned rows of the tangent at ``state``: CSR (3n × 3N), rows in the order of ``owned``, N/cm.
 
         With ``pressure_free`` (projected volumetric energy): the rows of the displacement block K_d
-        of the mixed form instead (:meth:`~pixmuscle.mechanics.solve.MechanicalSystem.stiffness`).
+        of the mixed form instead (:meth:`~pixmuscle.mechanics.system.MechanicalSystem.stiffness`).
         """
         return self.asm.matrix(self._data(state, pressure_free)).tocsr()[self._rows]
 
@@ -103,10 +99,21 @@ class RowAssembler:
         n = 3 * self.owned.size
         return sp.bsr_matrix((self._data(state, pressure_free), local[asm.indices], indptr), shape=(n, n)).tocsr()
 
+    def gradients(self) -> np.ndarray:
+        """Smoothed gradients of :attr:`cells` on this pattern's support layout, (nnz, 3), cm⁻¹: the
+        system's (:meth:`~pixmuscle.mechanics.solve.MechanicalSystem._support_gradients`) at the
+        cells' entries."""
+        start, count = self._entries
+        first = np.cumsum(count) - count
+        pos = np.repeat(start - first, count) + np.arange(int(count.sum()))
+        return self.system._support_gradients()[pos]
+
     def _constant(self) -> np.ndarray:
         """Block data of the penalty and NSNI rows (made for each assembly, not kept)."""
         data = self.asm.zeros()
-        for j, Kr in enumerate(self._penalty):
+        for j, Kj in enumerate(self.system.penalty):  # the owned rows of the penalty stiffness per component
+            Kr = sp.csr_matrix(Kj)[self.owned].tocoo()
+            Kr = sp.coo_matrix((Kr.data, (self.owned[Kr.row], Kr.col)), shape=Kj.shape)
             self.asm.align_scalar(Kr, j, j, data)
         if isinstance(self._stab, sp.csr_matrix):
             self.asm.add_identity_blocks(self._stab, data)
@@ -119,10 +126,11 @@ class RowAssembler:
         data = self._constant()
         vol = self.system.volumetric
         pressure_free = pressure_free and vol is not None
-        A = self.system._held_volumetric(state, state.A) if pressure_free else state.A
-        self.asm.fill(self.g, A[self.cells], self.volume, out=data)
+        A = self.system.held_volumetric(state, state.A) if pressure_free else state.A
+        g = self.gradients()
+        self.asm.fill(g, A[self.cells], self.volume, out=data)
         if vol is not None and not pressure_free:
             wv = (vol.volume / vol.vp[vol.patch_of])[self.cells]
-            v = self.asm.patch_vectors(self.g, state.vol.a[self.cells], wv, self.local_patch)
+            v = self.asm.patch_vectors(g, state.vol.a[self.cells], wv, self.local_patch)
             self.asm.fill_patches(v, (vol.vp * vol.kbar)[self.patches], data)
         return data
