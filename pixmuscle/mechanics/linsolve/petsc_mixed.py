@@ -96,50 +96,38 @@ Without a projected volumetric energy there is no pressure, and the solver is ``
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 from dataclasses import field
 
 import numpy as np
 
-from ...errors import SolverError
+from ...errors import SolverError, SolverGaveUp
 from . import multigrid
 from .base import BACKENDS
 from .mixed_method import MixedBlocks, Pass, probe_colours, probe_diagonal, refine
 from .petsc import DEFAULT_OPTIONS as CONDENSED_OPTIONS
 from .petsc import PETScOptions, PETScSolver, set_options
+from .rebuild import RebuildPolicy
 
-#: PETSc options of the mixed solve unless ``petsc_options`` sets them (prefix ``pixmuscle_mixed_``)
-DEFAULT_OPTIONS = {"ksp_type": "fgmres", "ksp_gmres_restart": 200, "pc_type": "fieldsplit",
+#: PETSc options of the mixed solve unless ``petsc_options`` sets them (prefix ``pixmuscle_mixed_``).
+#: GMRES preconditioned on the right, as ``mixed_amg``'s: the preconditioner (one V-cycle, exact region
+#: solves, a diagonal Schur approximation) is one fixed linear operator, so no flexible basis is needed.
+#: The displacement split's preconditioner is set in code (:class:`DisplacementPreconditioner`) unless
+#: ``petsc_options`` names ``fieldsplit_u_pc_type``; the GAMG options under ``fieldsplit_u_`` serve that case.
+DEFAULT_OPTIONS = {"ksp_type": "gmres", "ksp_pc_side": "right", "ksp_gmres_restart": 200, "pc_type": "fieldsplit",
                    "pc_fieldsplit_type": "schur", "pc_fieldsplit_schur_fact_type": "upper",
                    "pc_fieldsplit_schur_precondition": "user",
                    "fieldsplit_u_ksp_type": "preonly",
                    **{"fieldsplit_u_" + k: v for k, v in CONDENSED_OPTIONS.items() if k.startswith(("pc_", "mg_"))},
                    "fieldsplit_p_ksp_type": "preonly", "fieldsplit_p_pc_type": "jacobi"}
 
-#: the displacement split with region solves (``region_solves``, the default): a multiplicative
-#: PCCOMPOSITE of GAMG (sub-PC 0, options under ``fieldsplit_u_sub_0_``) and exact solves on the
-#: boundary-condition regions (sub-PC 1, PCASM with one local subdomain per region, under
-#: ``fieldsplit_u_sub_1_``). The two sub-PCs are added in code, not by ``pc_composite_pcs``:
-#: PCFIELDSPLIT reads the split's options twice (once for the Schur complement's inner KSP), and
-#: PCCOMPOSITE adds the listed PCs at each reading.
-REGION_OPTIONS = {**{k: v for k, v in DEFAULT_OPTIONS.items() if not k.startswith(("fieldsplit_u_pc_", "fieldsplit_u_mg_"))},
-                  "fieldsplit_u_pc_type": "composite", "fieldsplit_u_pc_composite_type": "multiplicative",
-                  **{"fieldsplit_u_sub_0_" + k: v for k, v in CONDENSED_OPTIONS.items() if k.startswith(("pc_", "mg_"))},
-                  "fieldsplit_u_sub_1_pc_asm_type": "basic", "fieldsplit_u_sub_1_pc_asm_overlap": 0,
-                  "fieldsplit_u_sub_1_pc_asm_local_type": "multiplicative",
-                  "fieldsplit_u_sub_1_sub_ksp_type": "preonly", "fieldsplit_u_sub_1_sub_pc_type": "lu"}
-
-
-def region_options() -> dict:
-    """:data:`REGION_OPTIONS` with BoomerAMG as the multigrid where PETSc has hypre."""
-    if not multigrid.hypre_available():
-        return REGION_OPTIONS
-    # GAMG's options stay under the prefix (a hypre PC ignores them), so that petsc_options
-    # {fieldsplit_u_sub_0_pc_type: gamg} gets the tuned GAMG back
-    return {**REGION_OPTIONS, "fieldsplit_u_sub_0_pc_type": "hypre", "fieldsplit_u_sub_0_pc_hypre_type": "boomeramg",
-            **{"fieldsplit_u_sub_0_" + k: v for k, v in multigrid.BOOMERAMG_OPTIONS.items()}}
+#: options prefix of the multigrid of :class:`DisplacementPreconditioner` (``petsc_options`` entries
+#: ``amg_*`` go there, e.g. ``amg_pc_hypre_boomeramg_strong_threshold``)
+_AMG_PREFIX = "pixmuscle_mixedamg_"
 
 _PREFIX = "pixmuscle_mixed_"
+_LOG = logging.getLogger(__name__)
 
 #: relative target below which a mixed solve is not asked to go (round-off floor); refinement takes over
 _FLOOR = 1e-11
@@ -150,14 +138,114 @@ class PETScMixedOptions(PETScOptions):
     """Options of ``solve.solver: {backend: petsc_mixed, …}``."""
 
     schur_scale: float = field(default=0.5, metadata={"gt": 0, "doc": "c of the diagonal Schur complement w²(c/(μ_p V_p) + 1/(V_p K̄_p)): the typical eigenvalue of G K_d⁻¹ Gᵀ against the pressure mass"})
-    schur: str = field(default="probed", metadata={"choices": ("probed", "mass"), "doc": "diagonal Schur approximation: `probed`, the diagonal of G M Gᵀ (M the displacement split's preconditioner) by probing with probe_spacing³ colours of the patch grid at each Newton system (as mixed_amg); `mass`, c/(μ_p V_p) with c = schur_scale"})
-    probe_spacing: int = field(default=3, metadata={"range": (2, None), "doc": "with schur: probed, same-colour patches of the probe are this many patch boxes apart (spacing³ colours, as many applications of the displacement preconditioner per Newton system)"})
-    region_solves: bool = field(default=True, metadata={"doc": "after each GAMG cycle on the displacement block, solve it exactly on the node regions of the boundary conditions (PCCOMPOSITE multiplicative of GAMG and PCASM, one local subdomain per region on each rank: the region's owned rows), where the penalty couplings, K-scaled with the default penalty number, live"})
+    schur: str = field(default="probed", metadata={"choices": ("probed", "mass"), "doc": "diagonal Schur approximation: `probed`, the diagonal of G M Gᵀ (M the displacement split's preconditioner) by probing with probe_spacing³ colours of the patch grid at each preconditioner build (as mixed_amg); `mass`, c/(μ_p V_p) with c = schur_scale"})
+    probe_spacing: int = field(default=3, metadata={"range": (2, None), "doc": "with schur: probed, same-colour patches of the probe are this many patch boxes apart (spacing³ colours, as many applications of the displacement preconditioner per build)"})
+    region_solves: bool = field(default=True, metadata={"doc": "after each multigrid cycle on the displacement block, solve it exactly on the node regions of the boundary conditions (the region solves of mixed_amg, PARDISO or SuperLU, each rank on the part of each region among its own nodes), where the penalty couplings, K-scaled with the default penalty number, live"})
+    rebuild_cost: int = field(default=40, metadata={"range": (1, None), "doc": "as mixed_amg's: what a build of the displacement preconditioner (multigrid, region factors, probed Schur diagonal) costs in Krylov iterations; it is kept across Newton systems and rebuilt once the iterations beyond its rate right after the build add up to this many (linsolve/rebuild.py)"})
+    give_up: float = field(default=4.0, metadata={"gt": 0, "doc": "as mixed_amg's: a solve with a preconditioner that has not yet converged a solve stops after give_up × (the last measured iterations per decade) × decades + rebuild_cost iterations"})
+    reach: int = field(default=2, metadata={"range": (1, 3), "doc": "the multigrid's stand-in holds the blocks of node pairs at most this many voxels apart (as mixed_amg's)"})
+
+
+class DisplacementPreconditioner:
+    """M_A of the displacement split, as ``mixed_amg``'s: one multigrid cycle (hypre BoomerAMG with
+    :data:`.multigrid.BOOMERAMG_OPTIONS`, GAMG without hypre) on this rank's rows of the positive
+    stand-in of K_d (:meth:`~.operator.SystemOperator.preconditioner_matrix` with ``volumetric="held"``),
+    then the exact region solves of :class:`.subdomains.RegionSolves` (PARDISO where MKL is installed)
+    on the part of each stiff region among this rank's nodes: multiplicative among a rank's regions,
+    additive across ranks. A petsc4py ``python`` PC context; :meth:`build` makes both at a state."""
+
+    def __init__(self, solver: PETScMixedSolver):
+        self.s = solver
+        self.amg = None
+        self.regions = None
+        self._r = None
+
+    def build(self, system, state) -> None:
+        s, PETSc = self.s, self.s.PETSc
+        if self.amg is not None:
+            self.amg.destroy()
+            self.amg = None
+        if self.regions is not None:
+            self.regions.release()
+        A = _owned_block_rows(system.preconditioner_matrix(state, s.reach, volumetric="held"), s.order, s.bounds,
+                              s.rank, PETSc)
+        self.amg = _multigrid(A, s, PETSc)
+        if s.region_solves:
+            if self.regions is None:
+                owned = np.sort(s.owned)
+                parts = [np.intersect1d(nodes, owned, assume_unique=True) for nodes in system.stiff_regions()]
+                self.regions = system.region_solves([p for p in parts if p.size], s.ijk)
+                s.info["region_nodes"] = int(self.regions.n_nodes)
+            self.regions.update(state)
+
+    def setUp(self, pc) -> None:  # built by build(), not by PETSc
+        pass
+
+    def apply(self, pc, x, y) -> None:
+        self.amg.apply(x, y)
+        if self.regions is None:
+            return
+        s = self.s
+        own = s.dof[s.lo:s.hi]
+        z = np.empty(s.dof.size)
+        z[s.dof] = s._gathered(y.getArray(readonly=True))  # the cycle's result at every node (halo of the region rows)
+        if not self.regions.parts:
+            return
+        if self._r is None:
+            self._r = np.zeros(s.dof.size)
+        self._r[own] = x.getArray(readonly=True)  # the regions read r on their own (owned) dofs only
+        y.setArray(self.regions.correct(self._r, z)[own])
+
+    def destroy(self, pc=None) -> None:
+        """Nothing: PETSc destroys the split's PC with each Newton system's KSP, and the
+        multigrid and region factors outlive it until the next build."""
+
+
+def _owned_block_rows(K, order, bounds, rank, PETSc):
+    """The block rows of rank ``rank``'s nodes of the BSR ``K`` (3 × 3 blocks), columns in the slab
+    order of the PETSc numbering, as a distributed BAIJ matrix."""
+    n = order.size
+    owned = order[bounds[rank]:bounds[rank + 1]]
+    pos = np.empty(n, np.int64)
+    pos[order] = np.arange(n)
+    counts = np.diff(K.indptr)[owned]
+    start = np.repeat(K.indptr[owned], counts)
+    idx = start + (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts))
+    cols = pos[K.indices[idx]]
+    row = np.repeat(np.arange(owned.size), counts)
+    by = np.lexsort((cols, row))
+    indptr = np.concatenate([[0], np.cumsum(counts)])
+    data = K.data[idx[by]]
+    del K
+    from .amg_processes import hypre_matrix
+
+    return hypre_matrix(PETSc.COMM_WORLD, indptr, cols[by], data, owned.size, n)
+
+
+def _multigrid(A, s, PETSc):
+    """The multigrid PC on the stand-in rows ``A``: BoomerAMG where PETSc has hypre, else GAMG."""
+    from .amg_processes import hypre_pc
+
+    amg_opts = {k[4:]: v for k, v in (s.user_options or {}).items() if str(k).startswith("amg_")}
+    if multigrid.hypre_available():
+        A, pc, _, _ = hypre_pc(A, _AMG_PREFIX, {**multigrid.BOOMERAMG_OPTIONS, **amg_opts})
+    else:
+        coords = PETSc.Vec().createMPI((3 * s.owned.size, s.dof.size), bsize=3, comm=s.comm)
+        coords.setArray(s.X[s.owned].ravel())
+        A.setNearNullSpace(PETSc.NullSpace().createRigidBody(coords))
+        pc = PETSc.PC().create(comm=s.comm)
+        pc.setOptionsPrefix(_AMG_PREFIX)
+        pc.setOperators(A)
+        set_options(_AMG_PREFIX, {k: v for k, v in CONDENSED_OPTIONS.items() if k.startswith(("pc_", "mg_"))}, amg_opts)
+        pc.setFromOptions()
+        pc.setUp()
+    A.destroy()  # the PC holds its reference
+    return pc
 
 
 @BACKENDS.register("petsc_mixed", options=PETScMixedOptions)
 class PETScMixedSolver(PETScSolver):
-    """PETSc FGMRES + Schur field split on the mixed form (see the module docstring).
+    """PETSc GMRES + Schur field split on the mixed form (see the module docstring).
 
     Parameters
     ----------
@@ -171,7 +259,9 @@ class PETScMixedSolver(PETScSolver):
         Krylov iterations per linear solve, all refinement passes together.
     options : dict, optional
         PETSc options (names without the dash), over :data:`DEFAULT_OPTIONS` for the mixed solve
-        and over :data:`.petsc.DEFAULT_OPTIONS` for the condensed one (no projected energy).
+        and over :data:`.petsc.DEFAULT_OPTIONS` for the condensed one (no projected energy);
+        ``fieldsplit_u_pc_type`` replaces :class:`DisplacementPreconditioner` by that PETSc PC on the
+        assembled rows of K_d; ``amg_*`` go to the multigrid of :class:`DisplacementPreconditioner`.
     schur_scale : float
         With ``schur="mass"``: c in Ŝ = w² (D⁻¹ + c/(μ_p V_p)).
     schur : {"probed", "mass"}
@@ -179,28 +269,45 @@ class PETScMixedSolver(PETScSolver):
     probe_spacing : int
         With ``schur="probed"``: colour spacing of the probe on the patch grid.
     region_solves : bool
-        Displacement split: BoomerAMG (GAMG without hypre) then exact (LU) solves on the
-        boundary-condition regions (:func:`region_options`); without, GAMG alone (:data:`DEFAULT_OPTIONS`).
+        Displacement split: the multigrid cycle then exact solves on the boundary-condition regions
+        (:class:`DisplacementPreconditioner`); without, the multigrid alone.
+    rebuild_cost, give_up : float
+        The rebuild rule of the displacement preconditioner (:class:`.rebuild.RebuildPolicy`).
+    reach : int
+        Node pairs at most this many voxels apart enter the multigrid's stand-in.
     """
 
     name = "petsc_mixed"
 
     def __init__(self, X, ijk, rtol: float = 1e-10, maxiter: int = 2000, options: dict | None = None,
-                 schur_scale: float = 0.5, region_solves: bool = True, schur: str = "probed", probe_spacing: int = 3):
+                 schur_scale: float = 0.5, region_solves: bool = True, schur: str = "probed", probe_spacing: int = 3,
+                 rebuild_cost: int = 40, give_up: float = 4.0, reach: int = 2):
         super().__init__(X, ijk, rtol=rtol, maxiter=maxiter, options=options)
-        self.mixed_options = set_options(_PREFIX, region_options() if region_solves else DEFAULT_OPTIONS, options)
+        self.user_options = dict(options or {})
+        # the assembled rows of K_d only for a PETSc PC of the displacement split named in petsc_options
+        # (or without region solves: GAMG alone on them, its options under fieldsplit_u_)
+        self.assembled = not region_solves or "fieldsplit_u_pc_type" in {str(k).lstrip("-") for k in self.user_options}
+        # a PETSc PC (GAMG's Chebyshev smoothers) is not a fixed operator: flexible GMRES for it
+        defaults = {**DEFAULT_OPTIONS, "ksp_type": "fgmres"} if self.assembled else {
+            **{k: v for k, v in DEFAULT_OPTIONS.items() if not k.startswith(("fieldsplit_u_pc_", "fieldsplit_u_mg_"))},
+            "fieldsplit_u_pc_type": "none"}  # replaced in code by the python PC
+        self.mixed_options = set_options(_PREFIX, defaults,
+                                         {k: v for k, v in self.user_options.items() if not str(k).startswith("amg_")})
         self.schur_scale = float(schur_scale)
         self.schur = schur
         self.probe_spacing = int(probe_spacing)
         self.ijk = np.asarray(ijk)
         self.region_solves = bool(region_solves)
+        self.reach = int(reach)
+        self.policy = RebuildPolicy(rebuild_cost, give_up, maxiter)
+        self._M = None if self.assembled else DisplacementPreconditioner(self)
+        self._probe = None
         self._mixed = None
         self._press = None
         self._gather = None
         self._pgather = None
-        self._regions = None
         self._space = None
-        self.info.update(refinements=0, pressures=0, region_rows=0)
+        self.info.update(refinements=0, pressures=0, region_nodes=0, build_s=[])
 
     @classmethod
     def from_options(cls, opts: PETScMixedOptions, X, *, ijk=None, width=(4, 4, 4)) -> PETScMixedSolver:
@@ -208,7 +315,8 @@ class PETScMixedSolver(PETScSolver):
             raise ValueError("petsc_mixed needs the voxel indices ijk of the nodes")
         return cls(X, ijk, rtol=opts.rtol, maxiter=opts.maxiter, options=dict(opts.petsc_options),
                    schur_scale=opts.schur_scale, region_solves=opts.region_solves, schur=opts.schur,
-                   probe_spacing=opts.probe_spacing)
+                   probe_spacing=opts.probe_spacing, rebuild_cost=opts.rebuild_cost, give_up=opts.give_up,
+                   reach=opts.reach)
 
     def _pressure_partition(self, space):
         """PETSc order of the pressure unknowns: the free patches by owning rank (the lowest rank
@@ -231,9 +339,6 @@ class PETScMixedSolver(PETScSolver):
             return
         PETSc = self.PETSc
         t0 = time.perf_counter()
-        if self._rows is None:
-            self._rows = system.owned_rows(self.owned)
-            self.info["halo_cells"] = int(self._rows.cells.size - self.owned.size)
         if self._press is None:
             patches, bounds = self._pressure_partition(space)
             self._press = (patches, bounds, patches[bounds[self.rank]:bounds[self.rank + 1]])
@@ -242,10 +347,23 @@ class PETScMixedSolver(PETScSolver):
         n_loc, n = self.hi - self.lo, self.dof.size
         m_loc, m = mine.size, patches.size
         p0 = int(pbounds[self.rank])
+        if self._gather is None:  # the displacement part of a solution to every rank
+            xu = PETSc.Vec().createMPI((n_loc, n), comm=self.comm)
+            self._gather = (xu, *PETSc.Scatter.toAll(xu))
+        if self._pgather is None:  # and its pressure part
+            xp = PETSc.Vec().createMPI((m_loc, m), comm=self.comm)
+            self._pgather = (xp, *PETSc.Scatter.toAll(xp))
 
-        Kd = self._rows.rows(state, pressure_free=True)
-        A00 = self._displacement_matrix(Kd)
         full = system.tangent_operator(state)  # the condensed tangent, matrix-free: the stopping test
+        if self.assembled:
+            if self._rows is None:
+                self._rows = system.owned_rows(self.owned)
+                self.info["halo_cells"] = int(self._rows.cells.size - self.owned.size)
+            A00 = self._displacement_matrix(self._rows.rows(state, pressure_free=True))
+        else:  # K_d matrix-free, this rank's rows of the replicated product (nothing assembled)
+            A00 = PETSc.Mat().createPython(((n_loc, n), (n_loc, n)), _OwnedRows(self, system.displacement_operator(state, tangent=full)),
+                                           comm=self.comm)
+            A00.setUp()
         blocks = MixedBlocks(space, mine)  # w from all free patches: every rank has the same number
         w = blocks.w
         G = (w * system.patch_divergence(state, mine).sparse()).tocsr()
@@ -262,7 +380,8 @@ class PETScMixedSolver(PETScSolver):
         A.assemble()
 
         isu, isp = A.getNestISs()[0]
-        isu.compose("nearnullspace", A00.getNearNullSpace())
+        if self.assembled:
+            isu.compose("nearnullspace", A00.getNearNullSpace())
         if self._mixed is not None:
             self._mixed["ksp"].destroy()
         ksp = PETSc.KSP().create(comm=self.comm)
@@ -275,59 +394,86 @@ class PETScMixedSolver(PETScSolver):
         pc.setFieldSplitSchurFactType(PETSc.PC.SchurFactType.UPPER)
         pc.setFieldSplitSchurPreType(PETSc.PC.SchurPreType.USER, S)
         ksp.setFromOptions()
-        self._set_region_subdomains(system, pc)
-        if self.schur == "probed":
-            self._probe_schur(space, pc, A01, A10, S, blocks, mine)
+        pc.setUp()  # creates the split KSPs and their PCs from the options
+        upc = pc.getFieldSplitSubKSP()[0].getPC()
+        if self._M is not None:
+            upc.setType(PETSc.PC.Type.PYTHON)
+            upc.setPythonContext(self._M)
+        self.policy.new_system()
+        build = self._M is not None and self.policy.must_build(self._M.amg is not None)
+        if build:
+            self._build(system, state)
+        if self.schur == "probed":  # with a kept preconditioner, its diagonal probed at its build
+            if build or self._M is None or self._probe is None:
+                t1 = time.perf_counter()
+                self._probe = self._probe_schur(space, pc, A01, A10, mine)
+                if build:
+                    self.info["build_s"][-1] += time.perf_counter() - t1
+            self._set_schur(S, blocks)
         b = PETSc.Vec().createMPI((n_loc + m_loc, PETSc.DECIDE), comm=self.comm)  # per rank: [u; p] owned
         z = b.duplicate()
         start = b.getOwnershipRange()[0]
-        if self._gather is None:  # the displacement part of a solution to every rank
-            xu = PETSc.Vec().createMPI((n_loc, n), comm=self.comm)
-            self._gather = (xu, *PETSc.Scatter.toAll(xu))
-        if self._pgather is None:  # and its pressure part
-            xp = PETSc.Vec().createMPI((m_loc, m), comm=self.comm)
-            self._pgather = (xp, *PETSc.Scatter.toAll(xp))
         self._space = space
         self._mixed = {"ksp": ksp, "A": A, "b": b, "z": z, "t": b.duplicate(), "u": isu.getIndices() - start,
-                       "p": isp.getIndices() - start, "w": w, "K": full, "blocks": (A00, A01, A10, A11, S)}
-        self.info["preconditioner_builds"] += 1
+                       "p": isp.getIndices() - start, "w": w, "K": full, "blocks": (A00, A01, A10, A11, S),
+                       "system": system, "state": state}
         self.info["setup_s"] = time.perf_counter() - t0
-        self.info["nnz_local"] = int(Kd.nnz + 2 * G.nnz)
+        self.info["nnz_local"] = int(2 * G.nnz)
 
-    def _set_region_subdomains(self, system, pc) -> None:
-        """With ``region_solves`` (and, as in :func:`region_options`, the displacement split's PC a
-        composite whose sub-PCs the options do not list), add the multigrid and PCASM to it and give PCASM
-        its subdomains: on this rank, for each region of :func:`.subdomains.constraint_regions`, the
-        region's dofs among the owned rows (PETSc displacement numbering); regions without an owned
-        row are left out, and a rank without any has one empty subdomain."""
-        opts = self.mixed_options
-        if (not self.region_solves or str(opts.get("fieldsplit_u_pc_type")) != "composite"
-                or "fieldsplit_u_pc_composite_pcs" in opts):
-            return
-        PETSc = self.PETSc
-        if self._regions is None:
-            sets = []
-            for nodes in system.stiff_regions():
-                rows = self.pos[(3 * nodes[:, None] + np.arange(3)).ravel()]
-                rows = np.sort(rows[(rows >= self.lo) & (rows < self.hi)])
-                if rows.size:
-                    sets.append(rows.astype(PETSc.IntType))
-            self._regions = sets
-            self.info["region_rows"] = int(sum(r.size for r in sets))
-        pc.setUp()  # creates the split KSPs (not yet set up) and their PCs from the options
-        composite = pc.getFieldSplitSubKSP()[0].getPC()
-        composite.addCompositePCType(str(opts.get("fieldsplit_u_sub_0_pc_type", "gamg")))
-        composite.addCompositePCType("asm")
-        amg, asm = composite.getCompositePC(0), composite.getCompositePC(1)
-        amg.setFromOptions()
-        asm.setFromOptions()
-        # PCASM wants at least one subdomain per rank: a rank without region rows gets an empty one
-        subdomains = [PETSc.IS().createGeneral(r, comm=PETSc.COMM_SELF)
-                      for r in self._regions or [np.empty(0, PETSc.IntType)]]
-        asm.setASMLocalSubdomains(len(subdomains), subdomains)
+    def _build(self, system, state) -> None:
+        """Build the displacement preconditioner (multigrid and region factors) at ``state``."""
+        t0 = time.perf_counter()
+        self._M.build(system, state)
+        self.policy.built()
+        self.info["preconditioner_builds"] += 1
+        self.info["build_s"].append(time.perf_counter() - t0)
 
-    def _probe_schur(self, space, pc, A01, A10, S, blocks: MixedBlocks, mine: np.ndarray) -> None:
-        """Set −Ŝ in ``S``, the diagonal of w² G M Gᵀ probed as in
+    def _ksp_solve(self, rtol: float) -> tuple[int, str, int]:
+        """One KSP solve of the prepared mixed system (``b`` into ``z``) within the rebuild rule's budget;
+        when the budget of a kept preconditioner runs out, rebuild it at the prepared state (and
+        its probed Schur diagonal) and go on from the iterate reached. Returns (iterations, status,
+        iterations of the stale preconditioner)."""
+        mx = self._mixed
+        ksp, b, z = mx["ksp"], mx["b"], mx["z"]
+        ksp.setInitialGuessNonzero(False)
+        ksp.setTolerances(rtol=rtol, atol=0.0, max_it=self.policy.budget(rtol))
+        ksp.solve(b, z)
+        its, reason = int(ksp.getIterationNumber()), int(ksp.getConvergedReason())
+        status = "converged" if reason > 0 else "maxiter" if reason == -3 else f"diverged (PETSc reason {reason})"
+        if self._M is None or not self.policy.may_rebuild(status, its):
+            return its, status, 0
+        _LOG.debug("petsc_mixed: %d iterations with a kept preconditioner cost more than a rebuild; rebuilding it", its)
+        self._build(mx["system"], mx["state"])
+        if self.schur == "probed":
+            A00, A01, A10, A11, S = mx["blocks"]
+            self._probe = self._probe_schur(self._space, ksp.getPC(), A01, A10, self._press[2])
+            self._set_schur(S, MixedBlocks(self._space, self._press[2]))
+        ksp.setInitialGuessNonzero(True)
+        ksp.setTolerances(rtol=rtol, atol=0.0, max_it=self.policy.retry_budget(rtol, its))
+        ksp.solve(b, z)
+        more, reason = int(ksp.getIterationNumber()), int(ksp.getConvergedReason())
+        status = "converged" if reason > 0 else "maxiter" if reason == -3 else f"diverged (PETSc reason {reason})"
+        return its + more, status, its
+
+    def _failed(self, status: str, total: int, rtol: float, passes: int = 1) -> SolverError:
+        if self.policy.gave_up(status, total):
+            return SolverGaveUp(f"petsc_mixed: GMRES gave up after {total} iterations (relative residual target "
+                                f"{rtol:.1e}): this system needs far more than the earlier ones (solver.give_up: "
+                                f"{self.policy.give_up:g}), e.g. after an overshooting Newton update; a smaller load "
+                                "increment (solve.steps) helps")
+        return SolverError(f"petsc_mixed: GMRES with the Schur field split {status} after {total} iterations in "
+                           f"{passes} passes (target {rtol:.1e}); try solver.petsc_options "
+                           "{fieldsplit_u_pc_type: hypre} or the condensed backend petsc, or check the boundary conditions")
+
+    def _set_schur(self, S, blocks: MixedBlocks) -> None:
+        """−Ŝ into the diagonal of ``S`` with the probed diagonal of the preconditioner's last build."""
+        diag = S.createVecLeft()
+        diag.setArray(-blocks.schur("probed", self.schur_scale, self._probe))
+        S.setDiagonal(diag)
+        diag.destroy()
+
+    def _probe_schur(self, space, pc, A01, A10, mine: np.ndarray) -> np.ndarray:
+        """The diagonal of w² G M Gᵀ on this rank's patches, probed as in
         :func:`.mixed_method.probed_schur_diagonal` (same colours and signs, so one rank and several
         give the same numbers) with M the displacement split's preconditioner, applied outside the KSP."""
         PETSc = self.PETSc
@@ -353,11 +499,9 @@ class PETScMixedSolver(PETScSolver):
 
         # every rank takes every colour: the products are collective
         probe = probe_diagonal(product, colour[mine], sign[mine], range(self.probe_spacing ** 3), largest)
-        diag = S.createVecLeft()
-        diag.setArray(-blocks.schur("probed", self.schur_scale, probe))
-        S.setDiagonal(diag)
-        for v in (q, g, u, y, diag):
+        for v in (q, g, u, y):
             v.destroy()
+        return probe
 
     def _diagonal(self, values: np.ndarray, start: int, size: int):
         """A distributed diagonal AIJ matrix with the owned ``values`` from global row ``start``."""
@@ -373,25 +517,26 @@ class PETScMixedSolver(PETScSolver):
         if self._mixed is None:
             return super().solve(r, rtol)
         t0 = time.perf_counter()
+        setup0 = sum(self.info["build_s"])
         rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
         mx = self._mixed
-        ksp, A, b, z, t, iu, K = mx["ksp"], mx["A"], mx["b"], mx["z"], mx["t"], mx["u"], mx["K"]
+        A, b, z, t, iu, K = mx["A"], mx["b"], mx["z"], mx["t"], mx["u"], mx["K"]
         rr = np.asarray(r, float).ravel()
         bn = float(np.linalg.norm(rr))
         own = self.dof[self.lo:self.hi]
         self.info["passes"] = []  # (mixed target, iterations, condensed relative residual after) per pass
+        stale = [0]
 
         def mixed_pass(res, x, target, lag, budget, attempt) -> Pass:
             barr = b.getArray()
             barr[:] = 0.0
             barr[iu] = res[own]
             b.setArray(barr)
-            ksp.setTolerances(rtol=target, atol=0.0, max_it=budget)
-            ksp.solve(b, z)
-            its, reason = int(ksp.getIterationNumber()), int(ksp.getConvergedReason())
+            its, status, stale_its = self._ksp_solve(target)
+            stale[0] += stale_its
             dx = np.zeros(rr.size)
-            if reason < 0:
-                return Pass(dx, its, f"diverged (PETSc reason {reason})")
+            if status != "converged":
+                return Pass(dx, its, status)
             A.mult(z, t)
             t.aypx(-1.0, b)  # t = b − A z, the true mixed residual
             mixed = t.norm()
@@ -404,18 +549,20 @@ class PETScMixedSolver(PETScSolver):
             return Pass(dx, its, "converged", lag=new / max(mixed, 1e-300), residual=left)  # condensed per mixed
 
         x, total, status, passes = refine(mixed_pass, lambda x: rr - K @ x, rr, rtol, self.maxiter, _FLOOR)
+        self._close(t0, setup0, total, rtol)
+        self.info["refinements"] += max(passes - 1, 0)
+        if status != "converged":
+            raise self._failed(status, total, rtol, passes)
+        if not stale[0]:
+            self.policy.account(total, rtol)
+        return x.reshape(np.shape(r))
+
+    def _close(self, t0, setup0, total, rtol) -> None:
         self.info["iterations"] = total
         self.info["krylov_iterations"] += total
-        self.info["refinements"] += max(passes - 1, 0)
-        self.info["solve_s"] = time.perf_counter() - t0
-        if status != "converged":
-            rn = float(np.linalg.norm(rr - K @ x))
-            amg = "fieldsplit_u_sub_0_pc_type" if self.region_solves else "fieldsplit_u_pc_type"
-            raise SolverError(f"petsc_mixed: KSP fgmres with the Schur field split {status} after {total} iterations "
-                              f"in {passes} passes (condensed relative residual {rn / max(bn, 1e-300):.1e}, target "
-                              f"{rtol:.1e}); try solver.petsc_options {{{amg}: hypre}} or the "
-                              "condensed backend petsc, or check the boundary conditions")
-        return x.reshape(np.shape(r))
+        built = sum(self.info["build_s"]) - setup0  # a rebuild within the solve is set-up time
+        self.info["setup_s"] += built
+        self.info["solve_s"] = time.perf_counter() - t0 - built
 
     def _gathered(self, owned: np.ndarray) -> np.ndarray:
         """The displacement part of a solution (owned rows, PETSc order) on every rank, in PETSc order."""
@@ -432,17 +579,16 @@ class PETScMixedSolver(PETScSolver):
         if self._mixed is None:
             return self.solve(r, rtol), None
         t0 = time.perf_counter()
+        setup0 = sum(self.info["build_s"])
         rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
         mx = self._mixed
-        ksp, b, z = mx["ksp"], mx["b"], mx["z"]
+        b, z = mx["b"], mx["z"]
         patches, _, mine = self._press
         barr = b.getArray()
         barr[mx["u"]] = np.asarray(r, float).ravel()[self.dof[self.lo:self.hi]]
         barr[mx["p"]] = self._space.scaled_rhs(rp, mine)
         b.setArray(barr)
-        ksp.setTolerances(rtol=rtol, atol=0.0, max_it=self.maxiter)
-        ksp.solve(b, z)
-        its, reason = int(ksp.getIterationNumber()), int(ksp.getConvergedReason())
+        its, status, stale = self._ksp_solve(rtol)
         zarr = z.getArray()
         x = np.zeros(np.asarray(r).size)
         x[self.dof] = self._gathered(zarr[mx["u"]])
@@ -450,16 +596,29 @@ class PETScMixedSolver(PETScSolver):
         xp.setArray(zarr[mx["p"]])
         pgather.scatter(xp, pall, addv=False, mode=self.PETSc.ScatterMode.FORWARD)
         dp = self._space.update(pall.getArray(), patches)
-        self.info["iterations"] = its
-        self.info["krylov_iterations"] += its
-        self.info["solve_s"] = time.perf_counter() - t0
-        if reason < 0:
-            amg = "fieldsplit_u_sub_0_pc_type" if self.region_solves else "fieldsplit_u_pc_type"
-            raise SolverError(f"petsc_mixed: KSP fgmres with the Schur field split diverged (PETSc reason {reason}) "
-                              f"after {its} iterations (target {rtol:.1e}); try solver.petsc_options {{{amg}: hypre}} "
-                              "or the condensed backend petsc, or check the boundary conditions")
+        self._close(t0, setup0, its, rtol)
+        if status != "converged":
+            raise self._failed(status, its, rtol)
+        if not stale:
+            self.policy.account(its, rtol)
         return x, dp
 
     def statistics(self) -> dict:
-        """As ``petsc``, plus ``refinements`` (mixed re-solves for the condensed residual, all solves)."""
-        return super().statistics() | {"refinements": self.info["refinements"]}
+        """As ``petsc``, plus ``refinements`` (mixed re-solves for the condensed residual, all solves)
+        and ``preconditioner_build_s`` (the wall time of each build of the displacement preconditioner, s)."""
+        return super().statistics() | {"refinements": self.info["refinements"],
+                                       "preconditioner_build_s": [round(t, 2) for t in self.info["build_s"]]}
+
+
+class _OwnedRows:
+    """A petsc4py ``python`` Mat context: this rank's rows of a replicated matrix-free operator
+    (``op @ v`` on the whole vector, gathered to every rank)."""
+
+    def __init__(self, solver: PETScMixedSolver, op):
+        self.s, self.op = solver, op
+
+    def mult(self, mat, x, y) -> None:
+        s = self.s
+        v = np.empty(s.dof.size)
+        v[s.dof] = s._gathered(x.getArray(readonly=True))
+        y.setArray((self.op @ v)[s.dof[s.lo:s.hi]])
