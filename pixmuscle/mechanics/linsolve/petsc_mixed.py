@@ -24,8 +24,7 @@ over the replicated (3N × N) smoothed-gradient operator, so this part costs O(N
 rank, like the replicated material evaluation), and w Gᵀ is PETSc's transpose of the distributed w G.
 The four blocks form a MatNest.
 
-The solver. PETSc's KSP FGMRES (the displacement block's preconditioner is a multigrid cycle, a
-preconditioner that need not be fixed) with ``PCFIELDSPLIT``: ``pc_fieldsplit_type schur``,
+The solver. PETSc's KSP GMRES preconditioned on the right with ``PCFIELDSPLIT``: ``pc_fieldsplit_type schur``,
 ``pc_fieldsplit_schur_fact_type upper``, i.e. P = [M_A, w Gᵀ; 0, −Ŝ] as in ``mixed_amg``; the
 displacement split (options prefix ``fieldsplit_u_``, ``ksp_type preonly``) is M_A, one GAMG cycle on
 K_d with the rigid-body modes as near-null space followed by exact solves of K_d on the node regions
@@ -50,23 +49,15 @@ the gradient supports of held single-node patches):
 
 (a multiplicative Schwarz step, K_i = R_iᵀ K_d R_i, 3n_i × 3n_i, N/cm).
 
-In PETSc: ``fieldsplit_u_pc_type composite`` with ``pc_composite_type multiplicative`` over two
-sub-PCs, the multigrid (options prefix ``fieldsplit_u_sub_0_``: hypre BoomerAMG with the settings
-of ``mixed_amg``'s, :data:`.multigrid.BOOMERAMG_OPTIONS`, where PETSc has hypre, else GAMG) and PCASM (``fieldsplit_u_sub_1_``: ``pc_asm_type
-basic``, ``pc_asm_overlap 0``, ``pc_asm_local_type multiplicative``, ``sub_pc_type lu``). On several
-ranks each rank takes, of each region, the part among its owned rows as one local subdomain, so a
-region cut by a slab boundary is solved as two blocks, one per rank, additively across ranks
-(multiplicatively among the regions of one rank); a rank without region rows has one empty
-subdomain. PCASM rather than a PCSHELL: the whole cycle stays in PETSc (no Python call per
-application), and every part of it is a PETSc option that ``petsc_options`` can change. The sub-PCs
-are added in code, not by ``pc_composite_pcs``, which PCFIELDSPLIT's two readings of the split's
-options (the split's KSP and the Schur complement's inner KSP are one object) would apply twice.
-A ``petsc_options`` entry for ``fieldsplit_u_pc_type`` (e.g. ``hypre``, ``lu``) replaces the whole
-composite; ``fieldsplit_u_sub_0_pc_type: gamg`` keeps the region solves after a GAMG cycle;
-``region_solves: false`` gives GAMG alone, its options under ``fieldsplit_u_`` (:data:`DEFAULT_OPTIONS`).
-On the 224-node clamped body of the tests BoomerAMG + region solves needs 48 and 53 FGMRES
-iterations at K × 1 and × 10 with the probed Schur diagonal (63 and 70 with the pressure mass),
-where GAMG + region solves needs 96 and 102 with the mass (docs/petsc.md).
+In PETSc: the displacement split's PC is a ``python`` PC, :class:`DisplacementPreconditioner`:
+BoomerAMG (GAMG without hypre) on this rank's rows of ``mixed_amg``'s positive stand-in of K_d,
+then :class:`.subdomains.RegionSolves` (PARDISO) on the part of each region among this rank's
+nodes, multiplicative among a rank's regions, additive across ranks. The K_d block of the Krylov
+operator is this rank's rows of the matrix-free K_d (nothing assembled). The multigrid, region
+factors and probed Schur diagonal are kept across Newton systems by :class:`.rebuild.RebuildPolicy`
+(as ``mixed_amg``'s). A ``petsc_options`` entry for ``fieldsplit_u_pc_type`` (e.g. ``lu``,
+``hypre``), or ``region_solves: false`` (GAMG alone), assembles the rows of K_d for that PETSc PC
+instead (FGMRES then, rebuilt at each Newton system). docs/petsc.md gives the measurements.
 
 Stopping. With ``solve.newton.pressure_update: mixed`` (the default) Newton runs on the mixed form
 (:mod:`..newton`): :meth:`PETScMixedSolver.solve_mixed` takes the force and pressure residuals as the
