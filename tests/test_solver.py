@@ -467,7 +467,8 @@ def test_cg_amg_solves_an_indefinite_tangent_by_fgmres(amg):
 def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
     """PARDISO's solution equals SciPy's sparse LU solve; its inertia equals numpy's eigenvalue count;
     after its factors are released it refuses to solve, and a new factorisation on the kept
-    analysis gives the same solution."""
+    analysis gives the same solution. The pattern keeps an int32 gather map and a digest of the block
+    pattern (matched again, and not by another pattern); PARDISO reports the memory it holds."""
     from pixmuscle.mechanics.pardiso import PardisoError, PardisoLDLT, SymmetricPattern
     from pixmuscle.verify.mechanics import linear_stiffness
 
@@ -481,8 +482,11 @@ def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
         Ks = sp.bsr_matrix((K + shift * sp.eye(n)).tocsr(), blocksize=(3, 3))
         pat = SymmetricPattern(Ks)
         assert np.array_equal(pat.values(Ks), sp.triu(Ks.tocsr()).tocsr().sorted_indices().data)
+        assert pat.take.dtype == np.int32 and pat.matches(Ks.copy())
+        assert not pat.matches(sp.bsr_matrix(sp.identity(n).tocsr(), blocksize=(3, 3)))
         f = PardisoLDLT(pat)
         f.factorize(pat.values(Ks))
+        assert f.info["memory_kB"] > 0 and f.info["peak_memory_kB"] >= f.info["memory_kB"]
         x = f.solve(r)
         x_ref = spla.spsolve(Ks.tocsc(), r)
         assert np.allclose(x, x_ref, rtol=1e-8, atol=1e-10 * np.abs(x_ref).max())

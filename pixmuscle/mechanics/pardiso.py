@@ -78,7 +78,11 @@ class SymmetricPattern:
     """Fixed map from a BSR matrix with 3×3 blocks to the upper triangle in CSR, 0-based.
 
     Built once per sparsity pattern; :meth:`values` gathers the upper-triangle entries of a
-    matrix with the same pattern in CSR order without any sorting (one ``take``).
+    matrix with the same pattern in CSR order without any sorting (one ``take``). What is kept:
+    the CSR structure PARDISO reads (``indptr``, ``indices``: int32), the gather map ``take``
+    (int32 while the BSR data has fewer than 2³¹ entries, else int64) and a digest of the block
+    pattern for :meth:`matches` (not a copy of it): 12 bytes per stored entry in place of 20 plus
+    the block pattern's 4 per block.
 
     Parameters
     ----------
@@ -105,7 +109,7 @@ class SymmetricPattern:
         # entries are in (block, i, j) order with sorted block columns in each block row, so a
         # stable sort by scalar row alone leaves every row's columns ascending
         order = np.argsort(row, kind="stable")
-        self.take = take[order]
+        self.take = take[order].astype(np.int32 if 9 * K.indices.size < np.iinfo(np.int32).max else np.int64)
         del take
         if self.take.size >= np.iinfo(np.int32).max:
             raise ValueError(f"{self.take.size} non-zeros in the upper triangle: too many for 32-bit PARDISO indices")
@@ -113,17 +117,26 @@ class SymmetricPattern:
         np.cumsum(np.bincount(row, minlength=self.n), out=self.indptr[1:])
         del row, order
         self.indices = (bcol[self.take // 9] * 3 + (self.take % 3).astype(itype)).astype(np.int32)
-        self.blocks = (K.indptr.copy(), K.indices.copy())
+        self.blocks = _digest(K)
 
     def matches(self, K: sp.bsr_matrix) -> bool:
-        """True if ``K`` has exactly this block pattern."""
-        ip, ix = self.blocks
-        return (K.shape[0] == self.n and K.indptr.shape == ip.shape and K.indices.shape == ix.shape
-                and np.array_equal(K.indptr, ip) and np.array_equal(K.indices, ix))
+        """True if ``K`` has exactly this block pattern (same shape, block counts and a digest of
+        its block ``indptr`` and ``indices``)."""
+        return K.shape[0] == self.n and _digest(K) == self.blocks
 
     def values(self, K: sp.bsr_matrix) -> np.ndarray:
         """Upper-triangle values of ``K`` in this pattern's CSR order, (nnz,) float64."""
         return np.ascontiguousarray(K.data.reshape(-1)[self.take], dtype=np.float64)
+
+
+def _digest(K: sp.bsr_matrix) -> tuple:
+    """Block pattern of ``K`` as (rows, blocks, BLAKE2b digest of its indptr and indices as int64)."""
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=32)
+    h.update(np.ascontiguousarray(K.indptr, np.int64).data)
+    h.update(np.ascontiguousarray(K.indices, np.int64).data)
+    return K.indptr.size - 1, K.indices.size, h.hexdigest()
 
 
 class PardisoLDLT:
@@ -138,7 +151,10 @@ class PardisoLDLT:
     ----------
     info : dict
         ``analysis_s``, ``factor_nnz`` (entries of L), ``factor_gflop``, ``inertia`` (positive,
-        negative pivots of the last factorisation), ``perturbed_pivots``.
+        negative pivots of the last factorisation), ``perturbed_pivots``, ``memory_kB`` (what
+        PARDISO itself holds, kB: its permanent analysis plus the factors and solve work space,
+        iparm[15] + iparm[16]) and ``peak_memory_kB`` (that or the analysis' peak, iparm[14],
+        whichever is larger).
     """
 
     MTYPE = -2  # real symmetric indefinite
@@ -166,7 +182,12 @@ class PardisoLDLT:
         self.info = {}
         t0 = time.perf_counter()
         self._call(11, self._data, np.zeros(pattern.n), np.zeros(pattern.n))
-        self.info.update(analysis_s=time.perf_counter() - t0, factor_nnz=self._factor_nnz())
+        self.info.update(analysis_s=time.perf_counter() - t0, factor_nnz=self._factor_nnz(), **self._memory())
+
+    def _memory(self) -> dict:
+        """PARDISO's own memory, kB (iparm[14..16]; see the class's ``info``)."""
+        held = int(self.iparm[15]) + int(self.iparm[16])
+        return {"memory_kB": held, "peak_memory_kB": max(held, int(self.iparm[14]))}
 
     def _factor_nnz(self) -> int:
         """Entries of the factor (iparm[17], an int32 that wraps above 2³¹: read as unsigned)."""
@@ -192,7 +213,8 @@ class PardisoLDLT:
         self._call(22, self._data, dummy, dummy)
         self._factored = True
         self.info.update(factor_nnz=self._factor_nnz(), factor_gflop=float(self.iparm[18]) / 1e3,
-                         inertia=(int(self.iparm[21]), int(self.iparm[22])), perturbed_pivots=int(self.iparm[13]))
+                         inertia=(int(self.iparm[21]), int(self.iparm[22])), perturbed_pivots=int(self.iparm[13]),
+                         **self._memory())
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """x = A⁻¹ b for the last factorised matrix; ``b`` (n,) or (n, k)."""
