@@ -205,11 +205,15 @@ class MechanicalSystem:
                 # the preconditioner's stand-in takes L from the factors cut near their cells
                 # (local_operator): L itself cut to near pairs has negative eigenvalues
                 wide = self._wide()
-                cut = [[local_operator(M, np.arange(self.n_nodes), model.ijk, LOCAL_RADIUS, wide, LOCAL_TOL)
-                        for M in grp] for grp in H]
+                cut = []
+                for k in range(len(H)):  # each axis's operators let go once cut (not all of H beside all of the cut)
+                    cut.append([local_operator(M, np.arange(self.n_nodes), model.ijk, LOCAL_RADIUS, wide, LOCAL_TOL)
+                                for M in H[k]])
+                    H[k] = None
                 self._stab_local = ConstantStiffness(cut, C).L.matrix
                 del cut
                 scni.dpsi_faces = None
+            del H, C
         self._main = None
         self._support = None
         self._g = None
