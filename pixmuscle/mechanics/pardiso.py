@@ -155,11 +155,19 @@ class PardisoLDLT:
         PARDISO itself holds, kB: its permanent analysis plus the factors and solve work space,
         iparm[15] + iparm[16]) and ``peak_memory_kB`` (that or the analysis' peak, iparm[14],
         whichever is larger).
+
+    Parameters
+    ----------
+    pattern : SymmetricPattern
+    single : bool
+        Factorise and solve in single precision (iparm[27] = 1: half the factor's memory), and
+        refine each solution in double precision against the kept float64 values
+        (x ← x + A₃₂⁻¹ (b − A x), at most ``refine`` steps, until ‖b − A x‖ ≤ ``refine_tol`` ‖b‖).
     """
 
     MTYPE = -2  # real symmetric indefinite
 
-    def __init__(self, pattern: SymmetricPattern):
+    def __init__(self, pattern: SymmetricPattern, single: bool = False, refine: int = 10, refine_tol: float = 1e-12):
         import time
 
         self._f = _load().pardiso
@@ -177,11 +185,17 @@ class PardisoLDLT:
         ip[18] = -1   # report Gflop of the factorisation
         ip[20] = 1    # Bunch–Kaufman 1×1 and 2×2 pivots
         ip[34] = 1    # zero-based indices
+        self.single, self.refine, self.refine_tol = bool(single), int(refine), float(refine_tol)
+        self._real = np.float32 if self.single else np.float64
+        if self.single:
+            ip[27] = 1    # single precision: a, b and x are float32
         self._data = np.zeros(pattern.indices.shape[0])
+        self._a = self._data  # the values PARDISO reads (a float32 copy in single precision)
         self._factored = False
         self.info = {}
         t0 = time.perf_counter()
-        self._call(11, self._data, np.zeros(pattern.n), np.zeros(pattern.n))
+        z = np.zeros(pattern.n, self._real)
+        self._call(11, self._data.astype(self._real, copy=False), z, z)
         self.info.update(analysis_s=time.perf_counter() - t0, factor_nnz=self._factor_nnz(), **self._memory())
 
     def _memory(self) -> dict:
@@ -208,9 +222,10 @@ class PardisoLDLT:
     def factorize(self, values: np.ndarray) -> None:
         """Numerical factorisation of the matrix with upper-triangle ``values`` (pattern order)."""
         self._data = np.ascontiguousarray(values, dtype=np.float64)
-        dummy = np.zeros(self.pattern.n)
+        self._a = self._data.astype(self._real, copy=False)
+        dummy = np.zeros(self.pattern.n, self._real)
         self._factored = False
-        self._call(22, self._data, dummy, dummy)
+        self._call(22, self._a, dummy, dummy)
         self._factored = True
         self.info.update(factor_nnz=self._factor_nnz(), factor_gflop=float(self.iparm[18]) / 1e3,
                          inertia=(int(self.iparm[21]), int(self.iparm[22])), perturbed_pivots=int(self.iparm[13]),
@@ -221,10 +236,34 @@ class PardisoLDLT:
         if not self._factored:
             raise PardisoError("PARDISO: solve before a successful factorisation")
         b = np.asarray(b, dtype=np.float64)
+        if self.single:
+            return self._refined(b)
         bf = np.asfortranarray(b)
         x = np.zeros_like(bf)
         self._call(33, self._data, bf, x, nrhs=1 if b.ndim == 1 else b.shape[1])
         return np.ascontiguousarray(x)
+
+    def _solve32(self, b: np.ndarray) -> np.ndarray:
+        """A₃₂⁻¹ b with the single-precision factors, returned in float64."""
+        bf = np.asfortranarray(b, dtype=np.float32)
+        x = np.zeros_like(bf)
+        self._call(33, self._a, bf, x, nrhs=1 if b.ndim == 1 else b.shape[1])
+        return np.ascontiguousarray(x, dtype=np.float64)
+
+    def _refined(self, b: np.ndarray) -> np.ndarray:
+        """Single-precision solve refined in double precision against the float64 values."""
+        pat = self.pattern
+        U = sp.csr_matrix((self._data, pat.indices, pat.indptr), shape=(pat.n, pat.n))
+        diag = self._data[pat.indptr[:-1]]  # each row's first upper entry is its diagonal
+        d = diag[:, None] if b.ndim == 2 else diag
+        x = self._solve32(b)
+        bn = np.linalg.norm(b)
+        for _ in range(self.refine):
+            r = b - (U @ x + U.T @ x - d * x)
+            if np.linalg.norm(r) <= self.refine_tol * bn:
+                break
+            x += self._solve32(r)
+        return x
 
     def __matmul__(self, b):
         return self.solve(b)
@@ -234,9 +273,9 @@ class PardisoLDLT:
         :meth:`factorize` works as before."""
         if self._factored:
             dummy = np.zeros(1)
-            self._call(0, dummy, dummy, dummy)
+            self._call(0, dummy.astype(self._real), dummy.astype(self._real), dummy.astype(self._real))
             self._factored = False
-        self._data = np.zeros(0)
+        self._data = self._a = np.zeros(0)
 
     def free(self) -> None:
         """Release PARDISO's internal memory (factors and analysis)."""

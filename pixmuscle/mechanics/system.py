@@ -574,13 +574,14 @@ class MechanicalSystem:
         vol = self.volumetric
         return constraint_regions(self, None if vol is None else vol.held[vol.patch_of])
 
-    def region_solves(self, regions: list[np.ndarray], ijk: np.ndarray) -> RegionSolves:
+    def region_solves(self, regions: list[np.ndarray], ijk: np.ndarray, single: bool = False) -> RegionSolves:
         """Exact solves of K_d on the node ``regions`` (:class:`.linsolve.subdomains.RegionSolves`:
         ``update(state)`` factorises, ``correct(r, z)`` applies the multiplicative correction);
-        ``ijk`` (N, 3) int orders the factorisations."""
+        ``ijk`` (N, 3) int orders the factorisations; ``single``: single-precision PARDISO factors
+        refined in double precision at each solve."""
         from .linsolve.subdomains import RegionSolves
 
-        return RegionSolves(self, regions, ijk)
+        return RegionSolves(self, regions, ijk, single=single)
 
     def statistics(self) -> dict:
         """Totals for the results' ``info``: seconds and counts of the material evaluations

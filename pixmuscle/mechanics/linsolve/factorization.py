@@ -158,16 +158,18 @@ class PardisoFactor:
     pattern (fixed for a model) and every tangent costs only the numerical factorisation.
     Symmetric indefinite pivoting, so tangents with negative eigenvalues are handled; the inertia
     tells whether K is definite. Small pivots are perturbed, not escalated: an inaccurate solve
-    is left to GMRES preconditioned by the factors.
+    is left to GMRES preconditioned by the factors. With ``single``, the factors are single
+    precision and every solve is refined in double precision (:class:`~..pardiso.PardisoLDLT`).
     """
 
     name = "pardiso"
 
-    def __init__(self, ijk=None, width=None):  # the ordering is PARDISO's own
+    def __init__(self, ijk=None, width=None, single: bool = False):  # the ordering is PARDISO's own
         from .. import pardiso
 
         if not pardiso.available():
             raise ValueError(PARDISO_MISSING)
+        self.single = bool(single)
         self.definite = False
         self.info: dict = {"analysis_s": 0.0}
         self._pattern = None
@@ -184,7 +186,7 @@ class PardisoFactor:
             if self._ldlt is not None:
                 self._ldlt.free()
             self._pattern = SymmetricPattern(K)
-            self._ldlt = PardisoLDLT(self._pattern)
+            self._ldlt = PardisoLDLT(self._pattern, single=self.single)
             self.info["analysis_s"] += self._ldlt.info["analysis_s"]
         values = self._pattern.values(K)
         del K  # the caller's function handed it over: only the values stay through the factorisation

@@ -100,14 +100,19 @@ class RegionSolves:
         Voxel indices (the nested-dissection order of SuperLU).
     engine : str
         ``auto`` (PARDISO when MKL is installed, else SuperLU), ``pardiso`` or ``superlu``.
+    single : bool
+        With PARDISO: single-precision factors (PARDISO holds 0.32 GB instead of 0.44 on the 21k leg),
+        each solve refined in double precision (:class:`~..pardiso.PardisoLDLT`); SuperLU ignores it.
     """
 
-    def __init__(self, system, regions, ijk, engine: str = "auto"):
+    def __init__(self, system, regions, ijk, engine: str = "auto", single: bool = False):
         self.system = system
         self.parts = []
+        name = engine_name(engine)
+        extra = {"single": single} if name == "pardiso" else {}
         for nodes in regions:
             dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
-            factor = ENGINES[engine_name(engine)](ijk=np.asarray(ijk)[nodes], width=(4, 4, 4))
+            factor = ENGINES[name](ijk=np.asarray(ijk)[nodes], width=(4, 4, 4), **extra)
             stab = system.stab.rows(nodes) if system.stab is not None else None
             pen = [RowSubset(P, nodes) for P in system.penalty]
             self.parts.append(_Region(nodes, dofs, None, factor, RowProduct(system.product_form, nodes), stab, pen))
