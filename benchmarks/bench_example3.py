@@ -32,6 +32,7 @@ Candidates (``CASES``):
   (Table 1's fat constants C10, C20, C30 for ``connective_tissue``, both subjects);
 * ``c_imct_parallel_compliant``: the baseline's layout (sheets containing the fibres) with that
   compliant connective tissue: the stiffness of the IMCT alone;
+* ``combined``: ``a_dti_noise``, ``b_subvoxel_fat`` and ``c_imct_series_compliant`` together;
 * ``d_outer_layer``: the aponeurosis thickened until the outer connective tissue (aponeurosis and
   skin) is the 37.3 / 31.2 cm³ that the paper's force per total volume implies.
 
@@ -77,7 +78,7 @@ DTI = {"bvalue": 500.0, "directions": 12, "b0": 1}
 COMPLIANT_CT = {"C10": 3.0, "C20": 8.0, "C30": 80.0}
 
 CASES = ["shipped", "baseline", "a_dti_noise", "b_subvoxel_fat", "b_subvoxel_fat_needed", "c_imct_series",
-         "c_imct_series_compliant", "c_imct_parallel_compliant", "d_outer_layer"]
+         "c_imct_series_compliant", "c_imct_parallel_compliant", "combined", "d_outer_layer"]
 
 
 def _young_architecture() -> dict:
@@ -150,7 +151,10 @@ def _noisy_fibres(ph, snr: float, seed: int) -> tuple[np.ndarray, float]:
 
 
 def _subjects(case: str, baseline_ratio: float | None) -> tuple[dict, dict, dict]:
-    """Per subject: the phantom, what was changed (JSON-able) and extra model inputs."""
+    """Per subject: the phantom, its truth volumes, what was changed (JSON-able) and extra model inputs."""
+    series = case.startswith("c_imct_series") or case == "combined"
+    fat = case.startswith("b_subvoxel_fat") or case == "combined"
+    dti = case in ("a_dti_noise", "combined")
     shipped = {s: phantom(s)[1] for s in ("young", "old")}
     held = {s: {k: shipped[s][k] for k in ("muscle", "imct", "imat", "outer_ct")} for s in shipped}
     arch = {"young": {}, "old": _young_architecture()}
@@ -159,7 +163,7 @@ def _subjects(case: str, baseline_ratio: float | None) -> tuple[dict, dict, dict
         change, extra = {}, {}
         if case == "shipped":
             ph, v = phantom(s)
-        elif case.startswith("c_imct_series"):
+        elif series:
             ph, v = phantom(s, held[s], imct_layout="series", **arch[s])
             change["imct_layout"] = "series"
         elif case == "d_outer_layer":
@@ -170,13 +174,15 @@ def _subjects(case: str, baseline_ratio: float | None) -> tuple[dict, dict, dict
             ph, v = phantom(s, held[s] if s == "old" else None, **arch[s])
         if s == "old" and case != "shipped":
             change["architecture"] = "young (25 deg, 5.68 cm fascicles)"
-        if case.startswith("b_subvoxel_fat"):
+        if case.endswith("_compliant") or case == "combined":
+            change["connective_tissue"] = dict(COMPLIANT_CT)
+        if fat:
             f = SUBVOXEL_FAT[s]
             if case == "b_subvoxel_fat_needed" and s == "old":
                 f = 1.0 - (1.0 - SUBVOXEL_FAT["young"]) * PAPER_RATIO / baseline_ratio
             extra["contractile_fraction"] = 1.0 - f
             change["subvoxel_fat_fraction"] = round(f, 4)
-        if case == "a_dti_noise":
+        if dti:
             ff = {t: (shipped[t]["imat"] + SUBVOXEL_FAT[t] * shipped[t]["muscle"])
                   / (shipped[t]["muscle"] + shipped[t]["imat"]) for t in shipped}
             snr = DTI_SNR_YOUNG * (1 - ff[s]) / (1 - ff["young"])
@@ -213,7 +219,7 @@ def _case_config(case: str, subjects: dict) -> Path:
              "boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]},
                                      {"nodes": "z_max", "fix": ["x", "y", "z"]}],
              "newton": {"residual_tol": 1.0e-2, "energy_tol": 1.0e-2}}
-    if case.endswith("_compliant"):
+    if case.endswith("_compliant") or case == "combined":
         solve["materials"] = {"connective_tissue": dict(COMPLIANT_CT)}
     cfg = {"title": f"Example 3 experiment: {case}", "synthetic": True, "output_dir": str(folder / "out"),
            "models": ["coarse"], "build_model": {}, "coarsen": {"factor": 2}, "solve": solve,

@@ -12,7 +12,9 @@ Owners: after the solve, every numpy array and sparse matrix reachable from the 
 state and the solver is counted once (the first owner reached keeps a shared array), under the attribute
 path that holds it (``system.scni.G`` …). Memory that numpy does not own — MKL PARDISO's factors, hypre's
 hierarchy, Python objects, the allocator's free pages — is the difference between the resident memory and
-the owners' sum (``not_numpy_GB``).
+the owners' sum (``not_numpy_GB``); of it, what PARDISO reports holding for the region factors (its
+analysis, factors and solve work space, and its peak, iparm[14..16]) is listed per region
+(``region_factors_pardiso``).
 
 Run: ``python benchmarks/bench_memory.py 75k 295k``; writes ``benchmarks/results/bench_memory.json`` (one
 row per size, GB per phase and per owner; a size measured again replaces its row). A smaller leg
@@ -151,12 +153,18 @@ def measure(size: str, depth: int = 4) -> dict:
     floor = min(0.01 * GB, 0.002 * sum(top.values()))  # 10 MB, or 0.2 % of the owners on a small leg
     detail = {k: round(v / GB, 4) for k, v in sorted(by_owner.items(), key=lambda kv: -kv[1]) if v >= floor}
     workers = [kb / 1024**2 for kb in workers_peak_rss_kb()]
+    regions = getattr(solver, "_regions", None)  # PARDISO's own memory of the region factors (MKL, not numpy)
+    parts = [] if regions is None else [p.factor.info for p in regions.parts]
+    pardiso = {"region_nodes": [int(p.nodes.size) for p in ([] if regions is None else regions.parts)],
+               "held_GB": [round(i.get("memory_kB", 0) / 1024**2, 3) for i in parts],
+               "peak_GB": [round(i.get("peak_memory_kB", 0) / 1024**2, 3) for i in parts],
+               "factor_nnz": [int(i.get("factor_nnz", 0)) for i in parts]}
     dofs = 3 * model.n_nodes
     peak = max(p["peak_GB"] for p in phases)
     return {"size": size, "nodes": int(model.n_nodes), "displacement_dofs": dofs, "pixel_cm": list(SIZES[size][2:] or [None])[0],
             "backend": solver.name, "krylov_iterations": iterations, "phases": phases,
             "owners_GB": {k: round(v / GB, 3) for k, v in top.items()}, "owners_detail_GB": detail,
-            "not_numpy_GB": round((rss - sum(top.values())) / GB, 3),
+            "not_numpy_GB": round((rss - sum(top.values())) / GB, 3), "region_factors_pardiso": pardiso,
             "amg_workers_peak_GB": [round(w, 3) for w in workers],
             "process_peak_GB": round(peak, 3),
             "kB_per_dof": {"process_peak": round(peak * 1024**2 / dofs, 2),

@@ -13,7 +13,8 @@ Solve: α 0 → 0.95 in 10 load steps, both ends fixed, bone surfaces fixed in-p
 kernel, linear basis, a/h = 1.65, every other setting at its default. Each case runs in its own
 process, so its peak RSS (:func:`_record.peak_rss_GB`, BoomerAMG workers included) is its own.
 Every row carries the fields of :mod:`_record` (command, commit, utc, machine, load average
-before and after, defaults, peak_rss_GB).
+before and after, defaults, peak_rss_GB), ``ranks`` (1: these sweeps run in one process) and
+``peak_rss_GB_per_rank_max`` (the largest rank's own tree: here the whole tree).
 
 Records per case: RK + SCNI build, pattern/assembly time per Newton iteration, linear set-up and
 solve time per Newton iteration, CG iterations, Newton iterations per step, whole sweep, peak RSS,
@@ -225,6 +226,9 @@ def run_case(size: str, backend: str, steps: int, alpha_to: float, penalty: floa
                      and steps == 10 and alpha_to == 0.95),
         "force_z_max_N": [float(f) for f in res.force("z_max")],
         "peak_rss_GB": max([peak_rss_gb()] + [seg["peak_rss_GB"] for seg in earlier]),
+        # one process (with its BoomerAMG workers): the whole tree is the largest rank's own tree
+        "ranks": 1,
+        "peak_rss_GB_per_rank_max": max([peak_rss_gb()] + [seg["peak_rss_GB"] for seg in earlier]),
         # a resumed sweep: each run's wall time (its own build and set-up included), steps and peak memory
         # (the iteration counts above are then the last run's only)
         "segments": earlier

@@ -217,6 +217,7 @@ EXAMPLE3_CANDIDATES = {
     "c_imct_series": "(c) IMCT sheets normal to the fibres (in series) in both subjects",
     "c_imct_series_compliant": "(c) as above, connective tissue as compliant as fat",
     "c_imct_parallel_compliant": "the baseline's sheets (in parallel), connective tissue as compliant as fat",
+    "combined": "(a), (b) and (c, compliant) together",
     "d_outer_layer": "(d) outer layer (aponeurosis and skin) at the paper's implied 37.3 / 31.2 cm³",
 }
 

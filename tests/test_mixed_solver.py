@@ -312,7 +312,8 @@ def test_region_solves_are_exact_on_their_regions_and_take_the_stiff_penalty():
     """The regions' rows of the displacement block applied matrix-free, and their diagonal blocks
     assembled on a pattern of their own, equal those of the assembled K_d; after a correction the
     residual vanishes on the last region (an exact solve there), and regions released (as before a
-    rebuild) and updated again give the same correction with SuperLU and PARDISO; with a stiff penalty
+    rebuild) and updated again give the same correction with SuperLU and PARDISO (and PARDISO's
+    single-precision factors, refined in double precision); with a stiff penalty
     (1000 times the default number: on this 224-node body the default one does not yet slow the
     V-cycle) the mixed solve needs far fewer iterations with the region solves than without (pyamg:
     39 against 83; BoomerAMG: 47 against none in 3,000)."""
@@ -360,6 +361,11 @@ def test_region_solves_are_exact_on_their_regions_and_take_the_stiff_penalty():
         again.update(state)
         assert np.allclose(again.correct(r, np.zeros_like(r)), before, rtol=1e-12, atol=1e-14 * np.abs(z).max()), engine
         assert np.allclose(before, z, rtol=1e-6, atol=1e-9 * np.abs(z).max()), engine
+    if pardiso.available():  # single-precision factors refined in double precision: the same correction
+        single = RegionSolves(system, regions, model.ijk, engine="pardiso", single=True)
+        single.update(state)
+        assert all(part.factor.single for part in single.parts)
+        assert np.allclose(single.correct(r, np.zeros_like(r)), z, rtol=1e-9, atol=1e-11 * np.abs(z).max())
     ref = spla.spsolve(system.stiffness(state).tocsc(), state.r.ravel())
     for amg in ["pyamg"] + (["hypre"] if multigrid.hypre_available() else []):
         its = {}

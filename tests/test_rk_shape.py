@@ -190,6 +190,25 @@ def test_blocked_evaluation_equals_single_block(monkeypatch):
         shape_functions(nodes, far[::-1], a, order=2)
 
 
+def test_check_only_tests_the_same_points_and_keeps_nothing(monkeypatch):
+    """``check_only``: None where every moment matrix is regular; otherwise the same error, naming the
+    same points (over several blocks), as the evaluation."""
+    from pixmuscle.rk import SingularMomentError
+
+    nodes, spacing = node_cloud(2, jitter=True, seed=13)
+    points = eval_points(2, spacing, n=200, seed=14)
+    a = 2.6 * spacing
+    monkeypatch.setattr(rk_shape, "PAIRS_PER_BLOCK", 100)
+    assert shape_functions(nodes, points, a, order=2, check_only=True) is None
+    far = np.vstack([points, [[-50.0, -50.0], [60.0, 0.0], [0.0, 70.0]]])[::-1]
+    errors = []
+    for check_only in (False, True):
+        with pytest.raises(SingularMomentError) as info:
+            shape_functions(nodes, far, a, order=2, check_only=check_only)
+        errors.append(info.value)
+    assert str(errors[0]) == str(errors[1]) and np.array_equal(errors[0].point_index, errors[1].point_index)
+
+
 def test_two_nodes_in_2d_linear_basis_is_singular():
     nodes = np.array([[0.0, 0.0], [1.0, 0.0]])
     points = np.array([[0.5, 0.0], [0.25, 0.0]])

@@ -467,7 +467,8 @@ def test_cg_amg_solves_an_indefinite_tangent_by_fgmres(amg):
 def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
     """PARDISO's solution equals SciPy's sparse LU solve; its inertia equals numpy's eigenvalue count;
     after its factors are released it refuses to solve, and a new factorisation on the kept
-    analysis gives the same solution."""
+    analysis gives the same solution. The pattern keeps an int32 gather map and a digest of the block
+    pattern (matched again, and not by another pattern); PARDISO reports the memory it holds."""
     from pixmuscle.mechanics.pardiso import PardisoError, PardisoLDLT, SymmetricPattern
     from pixmuscle.verify.mechanics import linear_stiffness
 
@@ -481,8 +482,11 @@ def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
         Ks = sp.bsr_matrix((K + shift * sp.eye(n)).tocsr(), blocksize=(3, 3))
         pat = SymmetricPattern(Ks)
         assert np.array_equal(pat.values(Ks), sp.triu(Ks.tocsr()).tocsr().sorted_indices().data)
+        assert pat.take.dtype == np.int32 and pat.matches(Ks.copy())
+        assert not pat.matches(sp.bsr_matrix(sp.identity(n).tocsr(), blocksize=(3, 3)))
         f = PardisoLDLT(pat)
         f.factorize(pat.values(Ks))
+        assert f.info["memory_kB"] > 0 and f.info["peak_memory_kB"] >= f.info["memory_kB"]
         x = f.solve(r)
         x_ref = spla.spsolve(Ks.tocsc(), r)
         assert np.allclose(x, x_ref, rtol=1e-8, atol=1e-10 * np.abs(x_ref).max())
@@ -494,6 +498,37 @@ def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
         f.factorize(pat.values(Ks))
         assert np.allclose(f.solve(r), x, rtol=1e-12, atol=1e-14 * np.abs(x).max())
         f.free()
+
+
+@pytest.mark.skipif(not pardiso.available(), reason="MKL PARDISO not installed")
+def test_pardiso_single_precision_is_refined_to_the_double_solution():
+    """Single-precision factors (iparm[27]) refined in double precision solve as the double-precision
+    factors do (one or several right-hand sides, definite or not), with the same inertia and less
+    memory held by PARDISO."""
+    from pixmuscle.mechanics.pardiso import PardisoLDLT, SymmetricPattern
+    from pixmuscle.verify.mechanics import linear_stiffness
+
+    model = mask_model(np.ones((4, 3, 3), bool), (0.1, 0.1, 0.2))
+    K, _ = linear_stiffness(model, lam=100.0, mu=10.0)
+    n = K.shape[0]
+    r = np.random.default_rng(2).standard_normal((n, 2))
+    ev = np.linalg.eigvalsh(K.toarray())
+    for shift in (1e-2, -0.5 * (ev[5] + ev[6])):
+        Ks = sp.bsr_matrix((K + shift * sp.eye(n)).tocsr(), blocksize=(3, 3))
+        pat = SymmetricPattern(Ks)
+        f64, f32 = PardisoLDLT(pat), PardisoLDLT(pat, single=True)
+        for f in (f64, f32):
+            f.factorize(pat.values(Ks))
+        assert f32.info["inertia"] == f64.info["inertia"]
+        assert f32.info["memory_kB"] < f64.info["memory_kB"]
+        for b in (r[:, 0], r):
+            x = f64.solve(b)
+            assert np.allclose(f32.solve(b), x, rtol=1e-10, atol=1e-11 * np.abs(x).max())
+        f32.release_factors()
+        f32.factorize(pat.values(Ks))
+        assert np.allclose(f32.solve(r[:, 0]), f64.solve(r[:, 0]), rtol=1e-10, atol=1e-11 * np.abs(x).max())
+        f64.free()
+        f32.free()
 
 
 def test_forcing_term_follows_eisenstat_walker_with_safeguards():

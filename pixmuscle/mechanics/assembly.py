@@ -326,16 +326,38 @@ def support_values(ptr: np.ndarray, nodes: np.ndarray, n_nodes: int, mats) -> np
 
     Entries of ``mats[k]`` outside the support raise ``ValueError`` (a programming error).
     """
+    return scatter_support(len(nodes), mats, support_positions(ptr, nodes, n_nodes, mats))
+
+
+def support_positions(ptr: np.ndarray, nodes: np.ndarray, n_nodes: int, mats) -> list[np.ndarray]:
+    """Where the stored entries of three (N_cells × N_nodes) operators lie in a support layout
+    (CSR structure ``ptr``, ``nodes`` with sorted rows): per operator, (nnz(M_k),) int32 (int64
+    above 2³¹ entries) positions in the order of its COO form (its CSR order for a CSR matrix),
+    for :func:`scatter_support`. 4 bytes per operator entry, where the values on the layout take
+    24 per layout entry.
+
+    Entries of ``mats[k]`` outside the support raise ``ValueError`` (a programming error).
+    """
     keys = np.repeat(np.arange(len(ptr) - 1, dtype=np.int64), np.diff(ptr)) * n_nodes + np.asarray(nodes, np.int64)
-    out = np.zeros((keys.shape[0], 3))
-    for k, M in enumerate(mats):
+    itype = _int_dtype(keys.shape[0])
+    out = []
+    for M in mats:
         C = sp.coo_matrix(M)
         q = C.row.astype(np.int64) * n_nodes + C.col
         pos = np.searchsorted(keys, q)
         pos = np.minimum(pos, len(keys) - 1)
         if not np.all(keys[pos] == q):
             raise ValueError("operator has entries outside the cell supports")
-        np.add.at(out[:, k], pos, C.data)
+        out.append(pos.astype(itype))
+    return out
+
+
+def scatter_support(size: int, mats, positions: list[np.ndarray]) -> np.ndarray:
+    """Values of three operators on a support layout of ``size`` entries, (size, 3), from their
+    :func:`support_positions` (the same numbers as :func:`support_values`)."""
+    out = np.zeros((size, 3))
+    for k, (M, pos) in enumerate(zip(mats, positions, strict=True)):
+        np.add.at(out[:, k], pos, sp.coo_matrix(M).data)
     return out
 
 

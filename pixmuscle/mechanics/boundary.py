@@ -203,12 +203,21 @@ class Constraints:
         return out
 
     def stiffness(self, n_nodes: int) -> list[sp.csr_matrix]:
-        """Penalty stiffness per component j: β Ψᵀ diag(w m_j) Ψ (N × N), N/cm."""
-        out = []
-        for j in range(3):
-            W = sp.diags(self.beta * self.weight * self.mask[:, j])
-            out.append((self.psi.T @ W @ self.psi).tocsr())
-        return out
+        """Penalty stiffness per component j: β Ψᵀ diag(w m_j) Ψ (N × N), N/cm. Components held at
+        the same points (equal mask columns: x and y of ends and bone surfaces) share one matrix
+        object (read only)."""
+        return shared_by_mask(self.mask, lambda j: (self.psi.T @ sp.diags(self.beta * self.weight * self.mask[:, j])
+                                                    @ self.psi).tocsr())
+
+
+def shared_by_mask(mask: np.ndarray, make) -> list:
+    """``[make(j) for j in range(3)]``, calling ``make`` once per distinct column of ``mask`` (n, 3)
+    bool: components with equal columns get the same object."""
+    out = []
+    for j in range(3):
+        same = next((i for i in range(j) if np.array_equal(mask[:, i], mask[:, j])), None)
+        out.append(make(j) if same is None else out[same])
+    return out
 
 
 def penalty_number(A0: np.ndarray, spacing, factor: float) -> float:

@@ -78,7 +78,11 @@ class SymmetricPattern:
     """Fixed map from a BSR matrix with 3×3 blocks to the upper triangle in CSR, 0-based.
 
     Built once per sparsity pattern; :meth:`values` gathers the upper-triangle entries of a
-    matrix with the same pattern in CSR order without any sorting (one ``take``).
+    matrix with the same pattern in CSR order without any sorting (one ``take``). What is kept:
+    the CSR structure PARDISO reads (``indptr``, ``indices``: int32), the gather map ``take``
+    (int32 while the BSR data has fewer than 2³¹ entries, else int64) and a digest of the block
+    pattern for :meth:`matches` (not a copy of it): 12 bytes per stored entry in place of 20 plus
+    the block pattern's 4 per block.
 
     Parameters
     ----------
@@ -105,7 +109,7 @@ class SymmetricPattern:
         # entries are in (block, i, j) order with sorted block columns in each block row, so a
         # stable sort by scalar row alone leaves every row's columns ascending
         order = np.argsort(row, kind="stable")
-        self.take = take[order]
+        self.take = take[order].astype(np.int32 if 9 * K.indices.size < np.iinfo(np.int32).max else np.int64)
         del take
         if self.take.size >= np.iinfo(np.int32).max:
             raise ValueError(f"{self.take.size} non-zeros in the upper triangle: too many for 32-bit PARDISO indices")
@@ -113,17 +117,26 @@ class SymmetricPattern:
         np.cumsum(np.bincount(row, minlength=self.n), out=self.indptr[1:])
         del row, order
         self.indices = (bcol[self.take // 9] * 3 + (self.take % 3).astype(itype)).astype(np.int32)
-        self.blocks = (K.indptr.copy(), K.indices.copy())
+        self.blocks = _digest(K)
 
     def matches(self, K: sp.bsr_matrix) -> bool:
-        """True if ``K`` has exactly this block pattern."""
-        ip, ix = self.blocks
-        return (K.shape[0] == self.n and K.indptr.shape == ip.shape and K.indices.shape == ix.shape
-                and np.array_equal(K.indptr, ip) and np.array_equal(K.indices, ix))
+        """True if ``K`` has exactly this block pattern (same shape, block counts and a digest of
+        its block ``indptr`` and ``indices``)."""
+        return K.shape[0] == self.n and _digest(K) == self.blocks
 
     def values(self, K: sp.bsr_matrix) -> np.ndarray:
         """Upper-triangle values of ``K`` in this pattern's CSR order, (nnz,) float64."""
         return np.ascontiguousarray(K.data.reshape(-1)[self.take], dtype=np.float64)
+
+
+def _digest(K: sp.bsr_matrix) -> tuple:
+    """Block pattern of ``K`` as (rows, blocks, BLAKE2b digest of its indptr and indices as int64)."""
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=32)
+    h.update(np.ascontiguousarray(K.indptr, np.int64).data)
+    h.update(np.ascontiguousarray(K.indices, np.int64).data)
+    return K.indptr.size - 1, K.indices.size, h.hexdigest()
 
 
 class PardisoLDLT:
@@ -138,12 +151,23 @@ class PardisoLDLT:
     ----------
     info : dict
         ``analysis_s``, ``factor_nnz`` (entries of L), ``factor_gflop``, ``inertia`` (positive,
-        negative pivots of the last factorisation), ``perturbed_pivots``.
+        negative pivots of the last factorisation), ``perturbed_pivots``, ``memory_kB`` (what
+        PARDISO itself holds, kB: its permanent analysis plus the factors and solve work space,
+        iparm[15] + iparm[16]) and ``peak_memory_kB`` (that or the analysis' peak, iparm[14],
+        whichever is larger).
+
+    Parameters
+    ----------
+    pattern : SymmetricPattern
+    single : bool
+        Factorise and solve in single precision (iparm[27] = 1: half the factor's memory), and
+        refine each solution in double precision against the kept float64 values
+        (x ← x + A₃₂⁻¹ (b − A x), at most ``refine`` steps, until ‖b − A x‖ ≤ ``refine_tol`` ‖b‖).
     """
 
     MTYPE = -2  # real symmetric indefinite
 
-    def __init__(self, pattern: SymmetricPattern):
+    def __init__(self, pattern: SymmetricPattern, single: bool = False, refine: int = 10, refine_tol: float = 1e-12):
         import time
 
         self._f = _load().pardiso
@@ -161,12 +185,23 @@ class PardisoLDLT:
         ip[18] = -1   # report Gflop of the factorisation
         ip[20] = 1    # Bunch–Kaufman 1×1 and 2×2 pivots
         ip[34] = 1    # zero-based indices
+        self.single, self.refine, self.refine_tol = bool(single), int(refine), float(refine_tol)
+        self._real = np.float32 if self.single else np.float64
+        if self.single:
+            ip[27] = 1    # single precision: a, b and x are float32
         self._data = np.zeros(pattern.indices.shape[0])
+        self._a = self._data  # the values PARDISO reads (a float32 copy in single precision)
         self._factored = False
         self.info = {}
         t0 = time.perf_counter()
-        self._call(11, self._data, np.zeros(pattern.n), np.zeros(pattern.n))
-        self.info.update(analysis_s=time.perf_counter() - t0, factor_nnz=self._factor_nnz())
+        z = np.zeros(pattern.n, self._real)
+        self._call(11, self._data.astype(self._real, copy=False), z, z)
+        self.info.update(analysis_s=time.perf_counter() - t0, factor_nnz=self._factor_nnz(), **self._memory())
+
+    def _memory(self) -> dict:
+        """PARDISO's own memory, kB (iparm[14..16]; see the class's ``info``)."""
+        held = int(self.iparm[15]) + int(self.iparm[16])
+        return {"memory_kB": held, "peak_memory_kB": max(held, int(self.iparm[14]))}
 
     def _factor_nnz(self) -> int:
         """Entries of the factor (iparm[17], an int32 that wraps above 2³¹: read as unsigned)."""
@@ -187,22 +222,48 @@ class PardisoLDLT:
     def factorize(self, values: np.ndarray) -> None:
         """Numerical factorisation of the matrix with upper-triangle ``values`` (pattern order)."""
         self._data = np.ascontiguousarray(values, dtype=np.float64)
-        dummy = np.zeros(self.pattern.n)
+        self._a = self._data.astype(self._real, copy=False)
+        dummy = np.zeros(self.pattern.n, self._real)
         self._factored = False
-        self._call(22, self._data, dummy, dummy)
+        self._call(22, self._a, dummy, dummy)
         self._factored = True
         self.info.update(factor_nnz=self._factor_nnz(), factor_gflop=float(self.iparm[18]) / 1e3,
-                         inertia=(int(self.iparm[21]), int(self.iparm[22])), perturbed_pivots=int(self.iparm[13]))
+                         inertia=(int(self.iparm[21]), int(self.iparm[22])), perturbed_pivots=int(self.iparm[13]),
+                         **self._memory())
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """x = A⁻¹ b for the last factorised matrix; ``b`` (n,) or (n, k)."""
         if not self._factored:
             raise PardisoError("PARDISO: solve before a successful factorisation")
         b = np.asarray(b, dtype=np.float64)
+        if self.single:
+            return self._refined(b)
         bf = np.asfortranarray(b)
         x = np.zeros_like(bf)
         self._call(33, self._data, bf, x, nrhs=1 if b.ndim == 1 else b.shape[1])
         return np.ascontiguousarray(x)
+
+    def _solve32(self, b: np.ndarray) -> np.ndarray:
+        """A₃₂⁻¹ b with the single-precision factors, returned in float64."""
+        bf = np.asfortranarray(b, dtype=np.float32)
+        x = np.zeros_like(bf)
+        self._call(33, self._a, bf, x, nrhs=1 if b.ndim == 1 else b.shape[1])
+        return np.ascontiguousarray(x, dtype=np.float64)
+
+    def _refined(self, b: np.ndarray) -> np.ndarray:
+        """Single-precision solve refined in double precision against the float64 values."""
+        pat = self.pattern
+        U = sp.csr_matrix((self._data, pat.indices, pat.indptr), shape=(pat.n, pat.n))
+        diag = self._data[pat.indptr[:-1]]  # each row's first upper entry is its diagonal
+        d = diag[:, None] if b.ndim == 2 else diag
+        x = self._solve32(b)
+        bn = np.linalg.norm(b)
+        for _ in range(self.refine):
+            r = b - (U @ x + U.T @ x - d * x)
+            if np.linalg.norm(r) <= self.refine_tol * bn:
+                break
+            x += self._solve32(r)
+        return x
 
     def __matmul__(self, b):
         return self.solve(b)
@@ -212,9 +273,9 @@ class PardisoLDLT:
         :meth:`factorize` works as before."""
         if self._factored:
             dummy = np.zeros(1)
-            self._call(0, dummy, dummy, dummy)
+            self._call(0, dummy.astype(self._real), dummy.astype(self._real), dummy.astype(self._real))
             self._factored = False
-        self._data = np.zeros(0)
+        self._data = self._a = np.zeros(0)
 
     def free(self) -> None:
         """Release PARDISO's internal memory (factors and analysis)."""

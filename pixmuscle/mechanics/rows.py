@@ -86,9 +86,10 @@ class RowAssembler:
         """
         return self.asm.matrix(self._data(state, pressure_free)).tocsr()[self._rows]
 
-    def block(self, state, pressure_free: bool = False) -> sp.csr_matrix:
-        """The diagonal block of the owned nodes (``square``): CSR (3n × 3n), dofs 3m + i of the
-        m-th owned node, N/cm; ``pressure_free`` as :meth:`rows`."""
+    def block(self, state, pressure_free: bool = False) -> sp.bsr_matrix:
+        """The diagonal block of the owned nodes (``square``): BSR (3n × 3n, 3 × 3 blocks), dofs
+        3m + i of the m-th owned node, N/cm; ``pressure_free`` as :meth:`rows`. BSR as the fill
+        makes it (PARDISO's upper triangle is gathered from it; no CSR copy)."""
         if not self.square:
             raise ValueError("RowAssembler.block needs square=True")
         asm = self.asm
@@ -97,7 +98,7 @@ class RowAssembler:
         counts = np.diff(asm.indptr)[self.owned]  # the other block rows are empty
         indptr = np.concatenate([[0], np.cumsum(counts)])
         n = 3 * self.owned.size
-        return sp.bsr_matrix((self._data(state, pressure_free), local[asm.indices], indptr), shape=(n, n)).tocsr()
+        return sp.bsr_matrix((self._data(state, pressure_free), local[asm.indices], indptr), shape=(n, n))
 
     def gradients(self) -> np.ndarray:
         """Smoothed gradients of :attr:`cells` on this pattern's support layout, (nnz, 3), cm⁻¹: the

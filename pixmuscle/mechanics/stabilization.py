@@ -98,7 +98,10 @@ def stabilization_operators(scni: SCNI, A0: np.ndarray, *, coefficient: float = 
     n = scni.n_nodes
     As = stabilization_modulus(A0, modulus).reshape(n, 9, 9)
     M = second_moments(scni.volume, scni.spacing)
-    C = np.concatenate([coefficient * M[:, k, None, None] * As for k in range(3)])
+    C = np.empty((3 * n, 9, 9))
+    for k in range(3):  # in place: no per-axis temporaries beside C
+        np.multiply(coefficient * M[:, k, None, None], As, out=C[k * n:(k + 1) * n])
+    del As
     return gradient_differences(scni), C
 
 

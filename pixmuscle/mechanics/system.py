@@ -31,8 +31,16 @@ import scipy.sparse as sp
 from ..errors import InputError
 from ..model.model import Model
 from ..model.tissues import MUSCLE, NODE_TISSUES, TISSUE_NAMES
-from .assembly import Assembler, local_operator, local_rows_csr, nonzero_blocks, support_pattern, support_values
-from .boundary import Constraints, build_constraints, end_rule, penalty_number, vertex_rule_faces
+from .assembly import (
+    Assembler,
+    local_operator,
+    local_rows_csr,
+    nonzero_blocks,
+    scatter_support,
+    support_pattern,
+    support_positions,
+)
+from .boundary import Constraints, build_constraints, end_rule, penalty_number, shared_by_mask, vertex_rule_faces
 from .config import SolveConfig, SupportConfig
 from .materials import LAWS, needs
 from .pressure import PatchDivergence, PressureSpace, pressure_scale
@@ -205,14 +213,18 @@ class MechanicalSystem:
                 # the preconditioner's stand-in takes L from the factors cut near their cells
                 # (local_operator): L itself cut to near pairs has negative eigenvalues
                 wide = self._wide()
-                cut = [[local_operator(M, np.arange(self.n_nodes), model.ijk, LOCAL_RADIUS, wide, LOCAL_TOL)
-                        for M in grp] for grp in H]
+                cut = []
+                for k in range(len(H)):  # each axis's operators let go once cut (not all of H beside all of the cut)
+                    cut.append([local_operator(M, np.arange(self.n_nodes), model.ijk, LOCAL_RADIUS, wide, LOCAL_TOL)
+                                for M in H[k]])
+                    H[k] = None
                 self._stab_local = ConstantStiffness(cut, C).L.matrix
                 del cut
                 scni.dpsi_faces = None
+            del H, C
         self._main = None
         self._support = None
-        self._g = None
+        self._g_positions = None
         self._assemblers = {}
         self._pressure_space = None
         self._owned_rows = None
@@ -253,7 +265,7 @@ class MechanicalSystem:
             asm = Assembler(self.support, ijk=self.model.ijk, reach=reach, wide=wide,
                             patches=self.volumetric.structure() if patches else None, local_tol=LOCAL_TOL,
                             pattern=None if reach is None else self._local_pattern(wide))
-            self._support_gradients()
+            self._gradient_positions()
             self._assemblers[key] = asm
             self.timings["pattern_s"] = self.timings.get("pattern_s", 0.0) + time.perf_counter() - t0
         return self._assemblers[key]
@@ -286,12 +298,20 @@ class MechanicalSystem:
         return P
 
     def _support_gradients(self) -> np.ndarray:
-        """The smoothed gradients on the support layout (:meth:`.Assembler.on_support`), made once."""
-        if self._g is None:
+        """The smoothed gradients on the support layout (:meth:`.Assembler.on_support`), (nnz(S), 3),
+        cm⁻¹: made for each fill from the compact gradients ``scni.G`` and their positions in the
+        layout (kept: 4 bytes per entry of G, where the layout's values took 24 per entry of the
+        support, about twice as many: 0.5 GB at 295k nodes)."""
+        return scatter_support(self.support.nnz, self.scni.G, self._gradient_positions())
+
+    def _gradient_positions(self) -> list[np.ndarray]:
+        """Positions of the entries of ``scni.G`` in the support layout (:func:`.assembly.support_positions`),
+        made once."""
+        if self._g_positions is None:
             S = sp.csr_matrix(self.support)
             S.sort_indices()
-            self._g = support_values(S.indptr, S.indices, S.shape[1], self.scni.G)
-        return self._g
+            self._g_positions = support_positions(S.indptr, S.indices, S.shape[1], self.scni.G)
+        return self._g_positions
 
     def _local_penalty(self) -> list[sp.csr_matrix]:
         """Penalty stiffness per component from the constraint points' shape functions cut near the
@@ -299,7 +319,8 @@ class MechanicalSystem:
         if self._penalty_local is None:
             c = self.constraints
             psi = local_operator(c.psi, c.node, self.model.ijk, LOCAL_RADIUS, self._wide(), LOCAL_TOL)
-            self._penalty_local = [(psi.T @ sp.diags(c.beta * c.weight * c.mask[:, j]) @ psi).tocsr() for j in range(3)]
+            self._penalty_local = shared_by_mask(c.mask, lambda j: (psi.T @ sp.diags(c.beta * c.weight * c.mask[:, j])
+                                                                    @ psi).tocsr())
         return self._penalty_local
 
     def constant_stiffness(self, asm: Assembler) -> np.ndarray:
@@ -389,15 +410,14 @@ class MechanicalSystem:
         r_u = state.r - self.scni.internal_force(dp[vol.patch_of][:, None, None] * state.vol.a)
         return r_u, np.where(vol.held, 0.0, state.vol.dtheta - state.pressure / vol.kbar)
 
-    def _add_patches(self, asm: Assembler, state: State, out: np.ndarray) -> None:
-        """Rank-one patch terms Σ_p V_p K̄_p g_p g_pᵀ of the projected volumetric energy.
-
-        """
+    def _add_patches(self, asm: Assembler, state: State, out: np.ndarray, g: np.ndarray) -> None:
+        """Rank-one patch terms Σ_p V_p K̄_p g_p g_pᵀ of the projected volumetric energy (``g``: the
+        gradients on the support layout, :meth:`_support_gradients`)."""
         vol = self.volumetric
         if vol is None:
             return
         wv = vol.volume / vol.vp[vol.patch_of]
-        v = asm.patch_vectors(self._g, state.vol.a, wv, vol.patch_of)
+        v = asm.patch_vectors(g, state.vol.a, wv, vol.patch_of)
         asm.fill_patches(v, vol.vp * vol.kbar, out)
 
     def held_volumetric(self, state: State, A: np.ndarray) -> np.ndarray:
@@ -419,11 +439,13 @@ class MechanicalSystem:
         asm = self.assembler(None, patches=not pressure_free)
         t0 = time.perf_counter()
         data = self.constant_stiffness(asm)
+        g = self._support_gradients()
         if pressure_free:
-            asm.fill(self._g, self.held_volumetric(state, state.A), self.scni.volume, out=data)
+            asm.fill(g, self.held_volumetric(state, state.A), self.scni.volume, out=data)
         else:
-            asm.fill(self._g, state.A, self.scni.volume, out=data)
-            self._add_patches(asm, state, data)
+            asm.fill(g, state.A, self.scni.volume, out=data)
+            self._add_patches(asm, state, data, g)
+        del g
         K = asm.matrix(data)
         self.timings["assembly_s"] += time.perf_counter() - t0
         self.timings["n_assembly"] += 1
@@ -478,7 +500,7 @@ class MechanicalSystem:
         elif state.vol is not None:  # the volumetric stiffness node by node, as the nodal energy has it
             a = state.vol.a
             A = A + self.volumetric.bulk[:, None, None, None, None] * np.einsum("nij,nkl->nijkl", a, a)
-        asm.fill(self._g, spd_surrogate(A), self.scni.volume, out=data)
+        asm.fill(self._support_gradients(), spd_surrogate(A), self.scni.volume, out=data)
         self.timings["assembly_s"] += time.perf_counter() - t0
         self.timings["n_assembly"] += 1
         return nonzero_blocks(asm.matrix(data))
@@ -552,13 +574,14 @@ class MechanicalSystem:
         vol = self.volumetric
         return constraint_regions(self, None if vol is None else vol.held[vol.patch_of])
 
-    def region_solves(self, regions: list[np.ndarray], ijk: np.ndarray) -> RegionSolves:
+    def region_solves(self, regions: list[np.ndarray], ijk: np.ndarray, single: bool = False) -> RegionSolves:
         """Exact solves of K_d on the node ``regions`` (:class:`.linsolve.subdomains.RegionSolves`:
         ``update(state)`` factorises, ``correct(r, z)`` applies the multiplicative correction);
-        ``ijk`` (N, 3) int orders the factorisations."""
+        ``ijk`` (N, 3) int orders the factorisations; ``single``: single-precision PARDISO factors
+        refined in double precision at each solve."""
         from .linsolve.subdomains import RegionSolves
 
-        return RegionSolves(self, regions, ijk)
+        return RegionSolves(self, regions, ijk, single=single)
 
     def statistics(self) -> dict:
         """Totals for the results' ``info``: seconds and counts of the material evaluations

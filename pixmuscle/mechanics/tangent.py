@@ -410,7 +410,9 @@ class ConstantStiffness:
         C = np.asarray(C, dtype=np.float64)
         c = C[:, 0, 0]
         self.n = groups[0][0].shape[1]
-        self.scalar = bool(np.array_equal(C, c[:, None, None] * np.eye(9)))
+        # C_q,L = c_q,L I: every diagonal entry c and no other non-zero (tested without a (Q·N, 9, 9) temporary)
+        diag = np.einsum("nii->ni", C)
+        self.scalar = bool(np.all(diag == c[:, None]) and np.count_nonzero(C) == np.count_nonzero(diag))
         if self.scalar:
             n = self.n
             B = sp.vstack([sp.csr_matrix(M) for grp in groups for M in grp], format="csr")  # rows (q, J, L)

@@ -66,7 +66,7 @@ def covering_supports(nodes, point_sets: Sequence[np.ndarray], support, *, kerne
     points = np.vstack([np.asarray(p, dtype=float).reshape(-1, d) for p in point_sets])
     for _ in range(max_rounds + 1):
         try:
-            shape_functions(nodes, points, a, kernel=kernel, order=order, support_shape=support_shape)
+            shape_functions(nodes, points, a, kernel=kernel, order=order, support_shape=support_shape, check_only=True)
         except SingularMomentError as exc:
             bad = points[exc.point_index]
             near = tree.query_ball_point(bad / scale, r=reach, p=np.inf)

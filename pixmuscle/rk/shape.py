@@ -48,6 +48,7 @@ def shape_functions(
     order=1,
     support_shape="box",
     gradient=False,
+    check_only=False,
 ):
     """RK shape functions Ψ_I(x) (paper eq. 7) and optionally their exact gradients.
 
@@ -70,6 +71,10 @@ def shape_functions(
         ``"sphere"``: φ_a = φ(‖(x - x_I) / a_I‖) (radial in support-normalised coordinates).
     gradient : bool
         Also return the derivatives ∂Ψ_I/∂x_k.
+    check_only : bool
+        Only test the moment matrices of the points (raising as below) and return None: no shape
+        function is computed or kept, so the memory is that of one block of points, not of Ψ
+        (~22 kB per node for the SCNI points of a leg).
 
     Returns
     -------
@@ -132,11 +137,11 @@ def shape_functions(
             alphas,
             g0,
             gradient,
-            compute=not bad_parts,
+            compute=not bad_parts and not check_only,
         )
         if out["bad"].size:
             bad_parts.append(out["bad"] + start)
-        elif not bad_parts:
+        elif not bad_parts and not check_only:
             counts[start:stop] = out["counts"]
             cols_parts.append(out["cols"])
             psi_parts.append(out["psi"])
@@ -148,6 +153,8 @@ def shape_functions(
 
     if bad_parts:
         _raise_bad_points(np.concatenate(bad_parts), points, n_points, dim, order, alphas.shape[0])
+    if check_only:
+        return None
 
     nnz = int(counts.sum())
     index_dtype = np.int32 if max(nnz, n_nodes) <= _INT32_MAX else np.int64

@@ -4,7 +4,10 @@ An engine factorises an assembled tangent K (3N × 3N, symmetric, possibly indef
 with the factors; :class:`~.direct.DirectSolver` decides when to factorise and how to refine. Each
 engine has
 
-``factorize(K)``   factorise (raises :class:`~pixmuscle.errors.SolverError` if K is singular)
+``factorize(K)``   factorise (raises :class:`~pixmuscle.errors.SolverError` if K is singular); K
+                   may be a function of no arguments that returns it, and is then let go before
+                   the numerical factorisation where the engine can (PARDISO: it keeps the upper
+                   triangle's values only)
 ``solve(r)``       x = K⁻¹ r with the factors, r and x (3N,)
 ``escalate()``     after an inaccurate solve: switch to a more robust pivoting for the next
                    factorisation and return True, or return False when there is none
@@ -113,7 +116,7 @@ class SuperLUFactor:
         self._p = None
 
     def factorize(self, K) -> None:
-        K = sp.csr_matrix(K)
+        K = sp.csr_matrix(K() if callable(K) else K)
         try:
             if self.level >= 2:
                 self._lu = spla.splu(K.tocsc(), permc_spec="COLAMD")
@@ -155,16 +158,18 @@ class PardisoFactor:
     pattern (fixed for a model) and every tangent costs only the numerical factorisation.
     Symmetric indefinite pivoting, so tangents with negative eigenvalues are handled; the inertia
     tells whether K is definite. Small pivots are perturbed, not escalated: an inaccurate solve
-    is left to GMRES preconditioned by the factors.
+    is left to GMRES preconditioned by the factors. With ``single``, the factors are single
+    precision and every solve is refined in double precision (:class:`~..pardiso.PardisoLDLT`).
     """
 
     name = "pardiso"
 
-    def __init__(self, ijk=None, width=None):  # the ordering is PARDISO's own
+    def __init__(self, ijk=None, width=None, single: bool = False):  # the ordering is PARDISO's own
         from .. import pardiso
 
         if not pardiso.available():
             raise ValueError(PARDISO_MISSING)
+        self.single = bool(single)
         self.definite = False
         self.info: dict = {"analysis_s": 0.0}
         self._pattern = None
@@ -173,22 +178,27 @@ class PardisoFactor:
     def factorize(self, K) -> None:
         from ..pardiso import PardisoError, PardisoLDLT, SymmetricPattern
 
+        if callable(K):
+            K = K()
         if K.format != "bsr" or K.blocksize != (3, 3):
             K = sp.bsr_matrix(K, blocksize=(3, 3))
         if self._pattern is None or not self._pattern.matches(K):
             if self._ldlt is not None:
                 self._ldlt.free()
             self._pattern = SymmetricPattern(K)
-            self._ldlt = PardisoLDLT(self._pattern)
+            self._ldlt = PardisoLDLT(self._pattern, single=self.single)
             self.info["analysis_s"] += self._ldlt.info["analysis_s"]
+        values = self._pattern.values(K)
+        del K  # the caller's function handed it over: only the values stay through the factorisation
         try:
-            self._ldlt.factorize(self._pattern.values(K))
+            self._ldlt.factorize(values)
         except PardisoError as exc:
             raise SolverError(f"direct solver (PARDISO): {exc}; check the boundary conditions") from None
         neg = self._ldlt.info["inertia"][1]
         self.definite = neg == 0
         self.info.update(factor_nnz=self._ldlt.info["factor_nnz"], factor_gflop=self._ldlt.info["factor_gflop"],
-                         negative_pivots=neg)
+                         negative_pivots=neg, memory_kB=self._ldlt.info["memory_kB"],
+                         peak_memory_kB=self._ldlt.info["peak_memory_kB"])
 
     def solve(self, r: np.ndarray) -> np.ndarray:
         return self._ldlt.solve(r)
