@@ -316,13 +316,64 @@ def memory() -> str:
     return "\n".join(lines)
 
 
+def memory_change() -> str:
+    """The memory of the first Newton system before and after the last cuts (bench_memory.json ``before``)."""
+    r = _load("benchmarks/results/bench_memory.json")
+    before = {c["size"]: c for c in r.get("before", [])}
+    if not before:
+        return "No earlier record in `benchmarks/results/bench_memory.json` (key `before`)."
+
+    def peak(c):
+        return max(p["peak_GB"] for p in c["phases"]) + sum(c["amg_workers_peak_GB"])
+
+    lines = ["| model | nodes | | peak, workers included | per unknown | held in numpy arrays | not held by numpy | made at |",
+             "|---|---|---|---|---|---|---|---|"]
+    for c in r["cases"]:
+        b = before.get(c["size"])
+        for label, x in (("before", b), ("after", c)):
+            if x is None:
+                continue
+            lines.append(f"| `{c['size']}` | {c['nodes']:,} | {label} | {peak(x):.2f} GB | "
+                         f"{x['kB_per_dof']['with_workers']:.1f} kB | {x['kB_per_dof']['numpy_owned']:.1f} kB | "
+                         f"{x['not_numpy_GB']:.2f} GB | {_made(x)} |")
+    lines += ["", "Both rows of a model made by `.venv/bin/python benchmarks/bench_memory.py SIZE` (`--keep-before` moves "
+                  "the row it replaces to the record's `before` list); the peak is the largest phase peak of the main "
+                  "process plus the BoomerAMG workers' peaks; per unknown: per displacement degree of freedom."]
+    return "\n".join(lines)
+
+
+def backends() -> str:
+    """Serial mixed_amg / direct against petsc_mixed under mpiexec on one model (bench_backends.json)."""
+    path = "benchmarks/results/bench_backends.json"
+    if not (ROOT / path).exists():
+        return "No record yet: `.venv/bin/python benchmarks/bench_backends.py`."
+    r = _load(path)
+    lines = ["| backend | ranks | wall | peak per rank (largest) | all ranks | Newton its | Krylov its | builds | F_max | "
+             "estimate printed at the start |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for c in r["cases"]:
+        if c.get("exit"):
+            lines.append(f"| `{c['backend']}` | {c['ranks']} | failed (exit {c['exit']}) | | | | | | | |")
+            continue
+        lines.append(f"| `{c['backend']}` | {c['ranks']} | {c['wall_s']:.0f} s | {c['peak_rss_GB_per_rank_max']:.2f} GB | "
+                     f"{c['peak_rss_GB']:.2f} GB | {c['newton_iterations']} | {c['krylov_iterations'] or '—'} | "
+                     f"{c['preconditioner_builds'] or '—'} | {c['force_z_max_N']:.4f} N | {c['estimate_s']:.0f} s |")
+    c0 = r["cases"][0]
+    loads = [c["load_average"]["before"][0] for c in r["cases"] if "load_average" in c]
+    lines += ["", f"Model `{r['model']}` ({c0.get('nodes', 0):,} nodes, the fine model of `configs/lower_leg_small.yaml`), "
+                  f"{c0['steps']} load steps to α = 0.95. Record `{path}`, made by `.venv/bin/python "
+                  f"benchmarks/bench_backends.py` at {_made(c0)} ({c0['utc'][:10]}, load average "
+                  f"{min(loads):.1f}–{max(loads):.1f} at the cases' starts)."]
+    return "\n".join(lines)
+
+
 #: NAME → function making the block's text (without the markers)
 TABLES = {"sweeps": sweeps, "sweeps-other": sweeps_other, "first-system": first_system,
           "example2": example2, "example3": example3, "bias-field": bias_field,
           "memory": memory, "example2-small": lambda: example2("lower_leg_small"),
           "example2-elliptic": lambda: example2("lower_leg_elliptic"),
           "example3-small": lambda: example3("mg_young_old_small"),
-          "example3-candidates": example3_candidates, "example3-uncertainty": example3_uncertainty}
+          "example3-candidates": example3_candidates, "example3-uncertainty": example3_uncertainty,
+          "memory-change": memory_change, "backends": backends}
 
 
 def render(text: str) -> str:
