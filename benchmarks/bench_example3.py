@@ -150,8 +150,8 @@ def _noisy_fibres(ph, snr: float, seed: int) -> tuple[np.ndarray, float]:
     return v, float(np.nanmean(fibre_angle_deg(v[muscle], ph.fiber_true[muscle])))
 
 
-def _subjects(case: str, baseline_ratio: float | None) -> tuple[dict, dict, dict]:
-    """Per subject: the phantom, its truth volumes, what was changed (JSON-able) and extra model inputs."""
+def _subjects(case: str, baseline_ratio: float | None) -> dict:
+    """``{subject: (phantom, truth volumes cm³, what was changed (JSON-able), extra model inputs)}``."""
     series = case.startswith("c_imct_series") or case == "combined"
     fat = case.startswith("b_subvoxel_fat") or case == "combined"
     dti = case in ("a_dti_noise", "combined")

@@ -336,7 +336,7 @@ def memory_change() -> str:
             lines.append(f"| `{c['size']}` | {c['nodes']:,} | {label} | {peak(x):.2f} GB | "
                          f"{x['kB_per_dof']['with_workers']:.1f} kB | {x['kB_per_dof']['numpy_owned']:.1f} kB | "
                          f"{x['not_numpy_GB']:.2f} GB | {_made(x)} |")
-    lines += ["", "Both rows of a model made by `.venv/bin/python benchmarks/bench_memory.py SIZE` (`--keep-before` moves "
+    lines += ["", "Record `benchmarks/results/bench_memory.json`: both rows of a model made by `.venv/bin/python benchmarks/bench_memory.py SIZE` (`--keep-before` moves "
                   "the row it replaces to the record's `before` list); the peak is the largest phase peak of the main "
                   "process plus the BoomerAMG workers' peaks; per unknown: per displacement degree of freedom."]
     return "\n".join(lines)
@@ -348,15 +348,19 @@ def backends() -> str:
     if not (ROOT / path).exists():
         return "No record yet: `.venv/bin/python benchmarks/bench_backends.py`."
     r = _load(path)
+    sys.path.insert(0, str(ROOT))
+    from pixmuscle.preflight import estimate_solve
+
     lines = ["| backend | ranks | wall | peak per rank (largest) | all ranks | Newton its | Krylov its | builds | F_max | "
-             "estimate printed at the start |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "today's estimate (`preflight.estimate_solve`) |", "|---|---|---|---|---|---|---|---|---|---|"]
     for c in r["cases"]:
         if c.get("exit"):
             lines.append(f"| `{c['backend']}` | {c['ranks']} | failed (exit {c['exit']}) | | | | | | | |")
             continue
         lines.append(f"| `{c['backend']}` | {c['ranks']} | {c['wall_s']:.0f} s | {c['peak_rss_GB_per_rank_max']:.2f} GB | "
                      f"{c['peak_rss_GB']:.2f} GB | {c['newton_iterations']} | {c['krylov_iterations'] or '—'} | "
-                     f"{c['preconditioner_builds'] or '—'} | {c['force_z_max_N']:.4f} N | {c['estimate_s']:.0f} s |")
+                     f"{c['preconditioner_builds'] or '—'} | {c['force_z_max_N']:.4f} N | "
+                     f"{estimate_solve(c['nodes'], c['steps'])[0]:.0f} s |")
     c0 = r["cases"][0]
     loads = [c["load_average"]["before"][0] for c in r["cases"] if "load_average" in c]
     lines += ["", f"Model `{r['model']}` ({c0.get('nodes', 0):,} nodes, the fine model of `configs/lower_leg_small.yaml`), "

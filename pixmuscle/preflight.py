@@ -25,10 +25,15 @@ from .outdir import prepare_output_dir
 RESULT_BYTES_PER_NODE_STEP = 13 * 8
 #: the rough cost of one load step, s: ``a n^p + b n²`` with n = n_nodes / :data:`NODES_REF` and
 #: ``STEP_SECONDS = (a, p, b)``, a least-squares fit in log to the whole sweeps at today's defaults on 2 cores
-#: (benchmarks/results/bench_solve.json, ``"defaults": true`` and not superseded; refit and checked with
-#: ``benchmarks/fit_time_estimate.py``). The n² term is the growth of the Krylov iterations
-#: with the model's size on top of the work per iteration, which grows about like n.
-STEP_SECONDS = (4.042, 0.802, 0.028)
+#: (benchmarks/results/bench_solve.json, ``"defaults": true`` and not superseded: their time less the
+#: system build, per load step; refit and checked with ``benchmarks/fit_time_estimate.py``). The n² term
+#: is the growth of the Krylov iterations with the model's size on top of the work per iteration,
+#: which grows about like n.
+STEP_SECONDS = (4.183, 0.672, 0.019)
+#: the one-off cost of a solve, s: ``c n^q`` with ``SETUP_SECONDS = (c, q)``, the same sweeps' system build
+#: (RK shape functions, SCNI and stabilisation operators: ``build_s``), fitted likewise; a solve of few
+#: load steps is mostly this
+SETUP_SECONDS = (3.006, 0.901)
 NODES_REF = 5460
 
 
@@ -51,7 +56,8 @@ def estimate_solve(n_nodes: int, steps: int) -> tuple[float, float]:
     """
     n = max(n_nodes, 1) / NODES_REF
     a, p, b = STEP_SECONDS
-    seconds = steps * (a * n**p + b * n**2)
+    c, q = SETUP_SECONDS
+    seconds = c * n**q + steps * (a * n**p + b * n**2)
     return seconds, float(steps + 1) * n_nodes * RESULT_BYTES_PER_NODE_STEP
 
 

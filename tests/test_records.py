@@ -35,11 +35,12 @@ def test_a_child_run_is_counted_in_the_tree():
 
 def test_the_estimate_is_the_fit_to_todays_default_sweeps():
     fit = _module("fit_time_estimate")
-    from pixmuscle.preflight import NODES_REF, STEP_SECONDS
+    from pixmuscle.preflight import NODES_REF, SETUP_SECONDS, STEP_SECONDS
 
     rows = fit.current_default_sweeps()
     assert len(rows) >= 3 and not any(r.get("superseded") for r in rows)
     assert fit.fit(rows, NODES_REF) == tuple(STEP_SECONDS)
+    assert fit.fit_setup(rows, NODES_REF) == tuple(SETUP_SECONDS)
 
 
 def test_default_rows_made_before_the_last_change_are_marked():
