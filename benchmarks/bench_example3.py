@@ -131,11 +131,10 @@ def phantom(subject: str, target: dict | None = None, **kw):
 def _noisy_fibres(ph, snr: float, seed: int) -> tuple[np.ndarray, float]:
     """Fibres (I, J, K, 3) on the MRI grid from the phantom's noise-free DTI with Rician noise at ``snr``,
     and the mean angle (deg) to the true fibres over the muscle voxels."""
-    from scipy import ndimage as ndi
-
     from pixmuscle.imaging.dti import resample_tensor_to_grid, tensor_from_components
     from pixmuscle.imaging.dti_noise import acquisition, fibre_angle_deg, noisy_tensors
     from pixmuscle.segmentation.assemble import fiber_data
+    from pixmuscle.stages.perturb import nearest_fill
 
     bvals, g = acquisition(DTI["bvalue"], DTI["directions"], DTI["b0"])
     d = noisy_tensors(tensor_from_components(ph.dti_tensor, "fsl"), snr, np.random.default_rng(seed),
@@ -143,9 +142,7 @@ def _noisy_fibres(ph, snr: float, seed: int) -> tuple[np.ndarray, float]:
     d_grid, covered = resample_tensor_to_grid(d, ph.dti_affine, ph.labels.shape, ph.affine)
     valid, v, _ = fiber_data(d_grid, covered)
     muscle = ph.labels == 1
-    if (muscle & ~valid).any():  # muscle voxels without fibre data take the nearest voxel's
-        _, idx = ndi.distance_transform_edt(~valid, return_indices=True)
-        v = v[tuple(idx)]
+    v = nearest_fill(v, valid, muscle, ph.spacing)  # muscle voxels without fibre data: the nearest voxel's (cm)
     v = np.where(muscle[..., None], v, ph.fiber_true)
     return v, float(np.nanmean(fibre_angle_deg(v[muscle], ph.fiber_true[muscle])))
 

@@ -38,7 +38,7 @@ from pixmuscle.segmentation.perturb import boundary_displacement, warp_labels
 from pixmuscle.segmentation.volume import SegmentationResult
 from pixmuscle.stages.segment import dti_source
 
-__all__ = ["run_perturb", "realisation_rngs", "dti_source"]
+__all__ = ["run_perturb", "realisation_rngs", "nearest_fill", "dti_source"]
 
 
 def realisation_rngs(seed: int, realisation: int) -> tuple[np.random.Generator, np.random.Generator]:
@@ -67,7 +67,7 @@ def _fibres_on_grid(seg_cfg, unc, rng, shape, affine, cache_dir) -> tuple[np.nda
     return valid, v
 
 
-def _nearest_fill(v: np.ndarray, valid: np.ndarray, where: np.ndarray, spacing) -> np.ndarray:
+def nearest_fill(v: np.ndarray, valid: np.ndarray, where: np.ndarray, spacing) -> np.ndarray:
     """``v`` with the voxels of ``where`` that are not ``valid`` given the value of the nearest valid voxel."""
     need = where & ~valid
     if not need.any() or not valid.any():
@@ -124,7 +124,7 @@ def run_perturb(segment_cfg, uncertainty_cfg, realisation: int, segmentation_pat
         new_mid = np.where(new_labels == MUSCLE, new_mid, 0).astype(np.int16)
         valid, v = _fibres_on_grid(segment_cfg, unc, rng_dti, labels.shape, affine, out_path.parent)
         muscle = new_labels == MUSCLE
-        v = _nearest_fill(v, valid, muscle, spacing)
+        v = nearest_fill(v, valid, muscle, spacing)
         fiber = np.where(muscle[..., None], v, 0.0).astype(np.float32)
         both = muscle & (labels == MUSCLE)
         angle = fibre_angle_deg(fiber[both], fiber0[both])
