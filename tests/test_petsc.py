@@ -1,4 +1,4 @@
-"""PETSc/MPI backend: the rows one rank assembles, the slab partition, and real ``mpiexec -n 2`` runs
+"""PETSc/MPI backend: the rows one rank assembles, and real ``mpiexec -n 2`` runs
 of ``pixmuscle solve`` against the serial default solver (skipped, with the reason, without petsc4py
 or mpiexec)."""
 
@@ -18,6 +18,7 @@ from pixmuscle.config import parse_section
 from pixmuscle.io.model import save_model
 from pixmuscle.io.results import load_results
 from pixmuscle.mechanics.config import SolveConfig
+from pixmuscle.mechanics.distributed import bisection_partition
 from pixmuscle.mechanics.linsolve import petsc
 from pixmuscle.mechanics.rows import RowAssembler
 from pixmuscle.mechanics.solve import build_system, solve
@@ -44,29 +45,18 @@ def _body(slices: int = 14):
     return dataclasses.replace(model, tissue=tissue, fiber=fiber)
 
 
-def test_slab_partition_cuts_whole_slices_into_balanced_parts():
-    model = _body()
-    order, bounds = petsc.slab_partition(model.ijk, 3)
-    assert np.array_equal(np.sort(order), np.arange(model.n_nodes))
-    k = model.ijk[order, 2]
-    for r in range(2):  # no slice is split between two ranks
-        assert k[bounds[r + 1] - 1] < k[bounds[r + 1]]
-    sizes = np.diff(bounds)
-    assert sizes.min() > 0.5 * model.n_nodes / 3
-
-
 @pytest.mark.parametrize("volumetric", ["projected", "nodal"])
 def test_owned_rows_equal_the_rows_of_the_whole_tangent(volumetric):
-    """Rows assembled from the cells around one slab (plus halo) are the rows of the full assembly
+    """Rows assembled from the cells around one rank's nodes (plus halo) are the rows of the full assembly
     (penalty, NSNI stabilisation and the projected patch terms included)."""
     model = _body()
     system = build_system(model, parse_section(SolveConfig, dict(SWEEP, volumetric={"method": volumetric}), "solve"))[0]
     rng = np.random.default_rng(0)
     state = system.evaluate(0.01 * rng.standard_normal((model.n_nodes, 3)), 0.5, 0.6)
     K = system.stiffness(state).tocsr()
-    order, bounds = petsc.slab_partition(model.ijk, 2)
+    part = bisection_partition(model.ijk, 2)
     for r in range(2):
-        owned = order[bounds[r]:bounds[r + 1]]
+        owned = np.flatnonzero(part == r)
         rows = RowAssembler(system, owned)
         assert rows.cells.size < model.n_nodes  # a halo, not the whole body
         assert np.count_nonzero(np.diff(rows.asm.indptr)) == owned.size  # and only the owned block rows
@@ -91,7 +81,8 @@ def _mpiexec() -> list[str]:
 
 
 def _env():
-    return dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMPI_MCA_rmaps_base_oversubscribe="1")
+    return dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMPI_MCA_rmaps_base_oversubscribe="1",
+                OMPI_MCA_mpi_yield_when_idle="1")  # more ranks than cores: a waiting rank gives its core up
 
 
 @pytest.fixture(scope="module")
@@ -154,7 +145,8 @@ def _first_newton_iterations(backend, bulk_scale, options=None, beta=3.0e4, **so
     except SolverError:
         return None, None
     K = system.stiffness(state).tocsc()
-    assert np.linalg.norm(K @ x - r) <= 1e-8 * np.linalg.norm(r)  # both stop on the true condensed residual
+    # both stop on the true condensed residual (of the matrix-free product: the assembled one differs in round-off)
+    assert np.linalg.norm(K @ x - r) <= 1.05e-8 * np.linalg.norm(r)
     ref = spla.spsolve(K, r)
     return solver.info["iterations"], np.linalg.norm(x - ref) / np.linalg.norm(ref)
 

@@ -150,24 +150,40 @@ class Constraints:
         gap = self.gap(d, t)
         return 0.5 * self.beta * float(np.sum(self.weight[:, None] * gap**2))
 
-    def reactions(self, d: np.ndarray, t: float) -> dict[str, np.ndarray]:
-        """Reaction per name: force (N, shape (3,)) that the support exerts on the body."""
+    def _chosen(self, points: np.ndarray | None) -> np.ndarray:
+        return np.ones(self.group.size, bool) if points is None else np.asarray(points, bool)
+
+    def reactions(self, d: np.ndarray, t: float, points: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Reaction per name: force (N, shape (3,)) that the support exerts on the body (summed over
+        the constraint points, or over those chosen by ``points`` (C,) bool: a rank's own)."""
         per_point = -self.beta * self.weight[:, None] * self.gap(d, t)
+        chosen = self._chosen(points)
         out = {name: np.zeros(3) for name in self.reaction_names}
         for b, name in enumerate(self.names):
-            out[name] += per_point[self.group == b].sum(axis=0)
+            out[name] += per_point[(self.group == b) & chosen].sum(axis=0)
         return out
 
-    def prescribed(self, t: float) -> dict[str, np.ndarray]:
-        """Prescribed displacement per name at load factor t (cm, (3,); 0 for free components)."""
+    def prescribed(self, t: float, points: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Prescribed displacement per name at load factor t (cm, (3,); 0 for free components, and
+        for a name without constraint points among ``points``)."""
+        chosen = self._chosen(points)
         out = {name: np.zeros(3) for name in self.reaction_names}
         for b, name in enumerate(self.names):
-            sel = self.group == b
+            sel = (self.group == b) & chosen
             if np.any(sel):
                 out[name] = np.where(self.mask[sel][0], t * self.target[sel][0], out[name])
         return out
 
-    def gaps(self, d: np.ndarray, t: float, u_nodes: np.ndarray) -> dict[str, dict[str, float]]:
+    def present(self, points: np.ndarray | None = None) -> dict[str, bool]:
+        """Whether each name has constraint points (among ``points``)."""
+        chosen = self._chosen(points)
+        out = {name: False for name in self.reaction_names}
+        for b, name in enumerate(self.names):
+            out[name] = out[name] or bool(np.any((self.group == b) & chosen))
+        return out
+
+    def gaps(self, d: np.ndarray, t: float, u_nodes: np.ndarray,
+             points: np.ndarray | None = None) -> dict[str, dict[str, float]]:
         """How far each boundary condition is from holding exactly, per reaction name (cm).
 
         ``point_cm``: largest |u^h(x_c) − t g_c| over the constrained components at the
@@ -182,12 +198,15 @@ class Constraints:
             Load factor.
         u_nodes : (N, 3) float
             Nodal displacements u(X_I), cm.
+        points : (C,) bool, optional
+            The constraint points to take (default all; a rank's own).
         """
         at_points = np.abs(self.gap(d, t))
         at_nodes = np.where(self.mask, np.abs(u_nodes[self.node] - t * self.target), 0.0)
+        chosen = self._chosen(points)
         out = {name: {"point_cm": 0.0, "node_cm": 0.0} for name in self.reaction_names}
         for b, name in enumerate(self.names):
-            sel = self.group == b
+            sel = (self.group == b) & chosen
             if np.any(sel):
                 out[name]["point_cm"] = max(out[name]["point_cm"], float(at_points[sel].max()))
                 out[name]["node_cm"] = max(out[name]["node_cm"], float(at_nodes[sel].max()))

@@ -105,8 +105,14 @@ class NewtonResult:
     reason: str = ""
 
 
-def _norm(r) -> float:
-    return float(np.sqrt(np.sum(np.square(r))))
+def _inner(system, a, b) -> float:
+    """a·b over all unknowns: ``system.inner`` (a distributed system sums over its ranks), else numpy's."""
+    inner = getattr(system, "inner", None)
+    return float(np.vdot(a, b)) if inner is None else inner(a, b)
+
+
+def _norm(system, r) -> float:
+    return float(np.sqrt(max(_inner(system, r, r), 0.0)))
 
 
 ETA_MAX = 1e-2
@@ -189,8 +195,8 @@ def line_search(system, state, dd: np.ndarray, cfg: NewtonConfig, pressure: tupl
         def trial_state(s):
             return system.evaluate(state.d + s * dd, t, alpha, pressure=pressure[0] + s * pressure[1])
     r0 = residual(state)
-    rn = _norm(r0)
-    g0 = float(np.vdot(dd, r0))
+    rn = _norm(system, r0)
+    g0 = _inner(system, dd, r0)
     descent = g0 > 0.0
     lo, g_lo, hi, g_hi = 0.0, g0, None, None  # bracket of the root of g; g_hi None: slope unknown
     side = 0  # Illinois: which end was kept last (halve its g when kept twice)
@@ -200,7 +206,7 @@ def line_search(system, state, dd: np.ndarray, cfg: NewtonConfig, pressure: tupl
         try:
             cand = trial_state(s)
             rc_vec = residual(cand)
-            rc = _norm(rc_vec)
+            rc = _norm(system, rc_vec)
             if not np.isfinite(rc):
                 raise SolverError("non-finite residual")
         except SolverError as exc:
@@ -210,7 +216,7 @@ def line_search(system, state, dd: np.ndarray, cfg: NewtonConfig, pressure: tupl
             continue
         if not cfg.line_search:
             return cand, s, ""
-        g = float(np.vdot(dd, rc_vec))
+        g = _inner(system, dd, rc_vec)
         if rc <= rn or (descent and (abs(g) <= 0.5 * g0 or (g > 0.0 and hi is None))):
             return cand, s, ""
         why = f"no decrease of residual or energy (residual {rc:.3g} > {rn:.3g})"
@@ -266,7 +272,7 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0, fallba
     mixed = (cfg.pressure_update == "mixed" and getattr(state, "vol", None) is not None
              and hasattr(linsolver, "solve_mixed"))
     for it in range(cfg.max_iterations + 1):
-        rn = _norm(state.r)
+        rn = _norm(system, state.r)
         scale = state.force_scale
         if rn <= system.atol:  # round-off level: nothing left to do
             rel = 0.0
@@ -288,7 +294,7 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0, fallba
         r, rp, p_step = state.r, None, None
         if mixed:  # Newton on the mixed form (module docstring)
             r, rp = system.mixed_residual(state)
-            rm = float(np.hypot(_norm(r), system.pressure_weight * _norm(rp)))
+            rm = float(np.hypot(_norm(system, r), system.pressure_weight * _norm(system, rp)))
             # Eisenstat–Walker on the mixed residual; the safeguard on the condensed one, which the
             # pressure rows' residual reaches multiplied by the bulk modulus
             eta = min(cfg.forcing_max, max(forcing_term(rm, rm_prev, 0.0, cfg.forcing_max), 0.1 * target / rn))
@@ -316,12 +322,12 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0, fallba
                     continue
                 rows.append(NewtonRow(step, t, it, rn, rel, 0.0, 0.0))
                 return NewtonResult(state, False, it, rows, rel, f"linear solver: {exc}")
-            if k + 1 < len(tangents) and float(np.vdot(dd, r)) <= 0.0:
+            if k + 1 < len(tangents) and _inner(system, dd, r) <= 0.0:
                 continue
             trial, s, why = line_search(system, state, dd, cfg, pressure=p_step)
             if trial is not None:
                 break
-        en = abs(float(np.vdot(dd, r)))
+        en = abs(_inner(system, dd, r))
         E_ref = max(E_ref, en)
         if trial is None:
             rows.append(NewtonRow(step, t, it, rn, rel, en, 0.0))
@@ -489,7 +495,7 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
                     state = system.evaluate(d, t_try, alpha_of(t_try))
                     if last is not None:  # the extrapolated start where it is nearer equilibrium
                         pred = _predict(system, d, last, t_try - t_done, t_try, alpha_of(t_try))
-                        if _norm(pred.r) < _norm(state.r):
+                        if _norm(system, pred.r) < _norm(system, state.r):
                             state = pred
                     res = newton(system, state, cfg, linsolver, step=k, fallback_tangent=conv)
             except SolverError as exc:  # inverted already at the start of the increment

@@ -23,16 +23,15 @@ import logging
 import time
 
 import numpy as np
-import scipy.sparse as sp
 
 from ..errors import SolverError
 from ..model.model import Model
 from . import newton as _newton
 from .boundary import SIGN_CONVENTION
 from .config import SolveConfig
-from .ellipticity import acoustic_minimum, directions
+from .ellipticity import directions
 from .linsolve import make_solver
-from .results import NodeEllipticity, Results, cauchy_voigt, max_principal
+from .results import NodeEllipticity, Results, max_principal
 from .system import (
     LOCAL_RADIUS,
     LOCAL_TOL,
@@ -52,13 +51,6 @@ _LOG = logging.getLogger(__name__)
 __all__ = ["solve", "constraint_gap", "ellipticity_warning", "GAP_WARN", "LOCAL_RADIUS", "LOCAL_TOL", "MechanicalSystem",
            "State", "build_system", "check_model", "make_materials", "material_kw", "node_supports", "rk_supports",
            "node_ellipticity", "ELLIPTICITY_DIRECTIONS"]
-
-
-def _psi_nodes(model: Model, cfg: SolveConfig, support) -> sp.csr_matrix:
-    from ..rk import shape_functions
-
-    return sp.csr_matrix(shape_functions(model.X, model.X, support, kernel=cfg.support.kernel,
-                                         order=cfg.support.order, support_shape=cfg.support.shape))
 
 
 #: a constraint gap is worth a warning above this fraction of the largest displacement and of the voxel
@@ -94,13 +86,12 @@ def constraint_gap(steps: list[dict], h_min: float) -> dict[str, dict]:
 ELLIPTICITY_DIRECTIONS = 300
 
 
-def node_ellipticity(system: MechanicalSystem, state: State, step: int) -> NodeEllipticity:
+def node_ellipticity(system: MechanicalSystem, state: State, step: int) -> NodeEllipticity | None:
     """The material law's smallest acoustic-tensor eigenvalue at every node at ``state`` (stored state
     ``step``), :func:`.ellipticity.acoustic_minimum` over :data:`ELLIPTICITY_DIRECTIONS` directions,
-    N/cm²; the law is not strongly elliptic where it is < 0."""
-    _, A = system.material_response(state.F, state.alpha)
-    q = acoustic_minimum(state.F, A, directions(ELLIPTICITY_DIRECTIONS))
-    return NodeEllipticity(step=int(step), minimum=q, n_directions=ELLIPTICITY_DIRECTIONS)
+    N/cm²; the law is not strongly elliptic where it is < 0. None on the ranks but 0 of a distributed system."""
+    q = system.ellipticity_minimum(state, directions(ELLIPTICITY_DIRECTIONS))
+    return None if q is None else NodeEllipticity(step=int(step), minimum=q, n_directions=ELLIPTICITY_DIRECTIONS)
 
 
 def ellipticity_warning(minimum: np.ndarray) -> tuple[int, str]:
@@ -121,6 +112,19 @@ def ellipticity_warning(minimum: np.ndarray) -> tuple[int, str]:
     return bad, (f"the material law is not strongly elliptic at {bad} of {q.size} nodes at the last converged step "
                  f"(smallest acoustic-tensor eigenvalue {q.min():.3g} N/cm²): deformation can localise there and "
                  f"forces and fields depend on the resolution (pixmuscle.mechanics.ellipticity)")
+
+
+def _build(model: Model, cfg: SolveConfig):
+    """The system of this process: under ``mpiexec`` with a PETSc backend this rank's part of a
+    distributed system (:mod:`.distributed`), else the whole one."""
+    from .. import parallel
+    from .linsolve import BACKENDS
+
+    if parallel.size() > 1 and BACKENDS.entry_of(cfg.solver).name in ("petsc", "petsc_mixed"):
+        from .distributed import build_distributed_system
+
+        return build_distributed_system(model, cfg)
+    return build_system(model, cfg)
 
 
 def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activation=None, *,
@@ -165,9 +169,9 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
         from .activation import activation_ramp
 
         activation = activation_ramp(model, cfg.activation)
-    system, info = build_system(model, cfg)
+    system, info = _build(model, cfg)
     system.activation = activation
-    psi_nodes = _psi_nodes(model, cfg, system.scni.support)
+    root = getattr(system, "layout", None) is None or system.layout.rank == 0
     linsolver = make_solver(cfg.solver, model.X, ijk=model.ijk,
                             width=2 * np.floor(np.asarray(cfg.support.a_over_h) + 0.5).astype(int))
     steps: list = []
@@ -202,17 +206,19 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
     def on_step(rec, replay=False):
         st = rec.state
         last_state[:] = [st]
-        steps.append(dict(
-            alpha=rec.alpha if activation is None else activation.mean(rec.alpha), t=rec.t, iterations=rec.iterations, cutbacks=rec.cutbacks, d=st.d.copy(),
-            u=np.asarray(psi_nodes @ st.d), reaction=system.constraints.reactions(st.d, rec.t),
-            prescribed=system.constraints.prescribed(rec.t), cauchy=cauchy_voigt(system.cauchy(st)), rows=rec.rows,
-        ))
-        steps[-1]["max_principal"] = max_principal(steps[-1]["cauchy"])
-        steps[-1]["gaps"] = system.constraints.gaps(st.d, rec.t, steps[-1]["u"])
+        out = system.step_output(st)  # under MPI: the nodal fields on rank 0 only (None elsewhere)
+        steps.append(dict(alpha=rec.alpha if activation is None else activation.mean(rec.alpha), t=rec.t,
+                          iterations=rec.iterations, cutbacks=rec.cutbacks, rows=rec.rows, **out))
+        steps[-1]["max_principal"] = None if out["cauchy"] is None else max_principal(out["cauchy"])
         last_rel = rec.rows[-1].relative_residual if rec.rows else 0.0
-        done.append(dataclasses.replace(rec, state=_newton.SavedState(st.d, st.t, st.alpha),  # no F, P, A kept
-                                        solver=rec.solver if replay else linsolver.memory()))
-        if on_checkpoint is not None and not replay:
+        # the checkpoint's records hold the whole model's d (rank 0 writes them)
+        inc = rec.increment
+        if inc is not None:
+            inc = (system.gather(inc[0]), inc[1])
+        mem = rec.solver if replay else system.memory_for_checkpoint(linsolver.memory())
+        done.append(dataclasses.replace(rec, state=_newton.SavedState(out["d"], st.t, st.alpha),  # no F, P, A kept
+                                        increment=inc, solver=mem))
+        if on_checkpoint is not None and not replay and root:
             on_checkpoint(done)
         _LOG.log(logging.DEBUG if replay else logging.INFO, "load step %d of %d: α = %.4g, load factor %.4g, %d Newton iterations, %d cutbacks, relative residual %.2e",
                   rec.step, cfg.steps, steps[-1]["alpha"], rec.t, rec.iterations, rec.cutbacks, last_rel)
@@ -227,21 +233,26 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
     error = None
     try:
         ramp = (cfg.alpha_from, cfg.alpha_to) if activation is None else (0.0, 1.0)
+        owned = []  # the resumed records as this system's rows (a rank's own nodes under MPI)
         for rec in resume or ():  # the converged steps of the interrupted run, rebuilt from their d
             st = rec.state
-            on_step(dataclasses.replace(rec, state=system.evaluate(np.asarray(st.d, float), st.t, st.alpha)), replay=True)
+            inc = None if rec.increment is None else (system.owned_of(rec.increment[0]), rec.increment[1])
+            mine = dataclasses.replace(rec, state=system.evaluate(system.owned_of(np.asarray(st.d, float)), st.t, st.alpha),
+                                       increment=inc)
+            owned.append(mine)
+            on_step(mine, replay=True)
         if done:
             info["resumed_after_step"] = len(done) - 1
             mem = done[-1].solver  # the preconditioner or factors the interrupted solve held
             if mem is not None and mem.backend == linsolver.memory_tag:
                 t0 = time.perf_counter()
-                linsolver.recall(system, mem)
+                linsolver.recall(system, system.memory_from_checkpoint(mem))
                 lin_time["setup_s"] += time.perf_counter() - t0
             elif mem is not None:
                 _LOG.warning("the checkpoint's linear-solver memory is of backend %s, this solve uses %s: it starts "
                              "afresh, and its forces agree with an uninterrupted run to the Newton tolerance only",
                              mem.backend, linsolver.memory_tag)
-        _newton.load_steps(system, cfg.steps, *ramp, cfg.newton, _Timed(), on_step=on_step, resume=done or None)
+        _newton.load_steps(system, cfg.steps, *ramp, cfg.newton, _Timed(), on_step=on_step, resume=owned or None)
     except SolverError as exc:
         status = f"failed: {exc}"
         error = exc
@@ -252,7 +263,7 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
                 linear_solve_s=lin_time["solve_s"], linear_iterations=lin_time["iterations"])
     info.update(linsolver.statistics())
     info.update(system.statistics())
-    gaps = constraint_gap(steps, float(np.min(model.spacing)))
+    gaps = constraint_gap(steps, float(np.min(model.spacing))) if root else {}
     for name, g in gaps.items():
         _LOG.log(logging.WARNING if g["significant"] else logging.INFO,
                  "boundary condition %s: constraint gap %.3g cm (%.2g %% of the largest displacement, %.3g cm); "
@@ -262,13 +273,20 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
     ellipticity = None
     if last_state:  # computed once, at the last converged state: the warning and the stored field
         ellipticity = node_ellipticity(system, last_state[0], len(steps) - 1)
+    if ellipticity is not None:
         bad, msg = ellipticity_warning(ellipticity.minimum)
         info["non_elliptic_nodes"] = bad
         if bad:
             _LOG.warning(msg)
             warnings.append(msg)
+    constrained = system.constrained_components()
+    if not root:  # a distributed solve's results are rank 0's
+        if error is not None:
+            error.results = None
+            raise error
+        return None
     results = Results.from_steps(model, steps, failed_rows=failed_rows, status=status, n_steps=cfg.steps,
-                                 constrained=system.constraints.constrained_components(), info=info,
+                                 constrained=constrained, info=info,
                                  sign_convention=SIGN_CONVENTION, constraint_gap=gaps, warnings=warnings,
                                  ellipticity=ellipticity)
     if error is not None:

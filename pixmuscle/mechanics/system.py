@@ -152,6 +152,9 @@ class State:
     #: patch pressure (N_p,) N/cm² of the tangent when Newton carries one (``evaluate``'s ``pressure``);
     #: None: the pressure of d
     pressure: np.ndarray | None = None
+    #: (Σ f_int², Σ f_pen²) over the system's :attr:`~MechanicalSystem.counted` rows, N²: the parts of
+    #: ``force_scale`` that a distributed system sums over its ranks
+    norms_sq: tuple | None = None
 
 
 class MechanicalSystem:
@@ -230,6 +233,12 @@ class MechanicalSystem:
         self._owned_rows = None
         self.activation = None  # ActivationRamp (per-node α), or None: α is the scalar of the load ramp
         self.atol = 0.0
+        #: the rows (node indices) whose forces make the force scale: None, all; a rank's own nodes
+        #: in a distributed system (:mod:`.distributed`), whose other rows are its halo's
+        self.counted = None
+        #: keywords of the RK shape functions (kernel, order, support_shape), for the nodal values
+        self.rk_kw = {}
+        self._psi_nodes = None
         self.timings = {"material_s": 0.0, "assembly_s": 0.0, "n_evaluate": 0, "n_assembly": 0}
 
     def stabilization_force(self, d: np.ndarray) -> np.ndarray | None:
@@ -372,11 +381,26 @@ class MechanicalSystem:
             fi = fi + fs
         fp = self.constraints.force(d, t)
         r = -(fi + fp)
-        scale = max(float(np.linalg.norm(fi)), float(np.linalg.norm(fp)))
+        c = self.counted
+        sq = (float(np.sum(np.square(fi if c is None else fi[c]))), float(np.sum(np.square(fp if c is None else fp[c]))))
+        scale = float(np.sqrt(max(sq)))
         self.timings["material_s"] += time.perf_counter() - t0
         self.timings["n_evaluate"] += 1
         return State(d=d, t=t, alpha=alpha, F=F, P=P, A=A, r=r, force_scale=scale, vol=vs,
-                     pressure=None if pressure is None else np.asarray(pressure, float))
+                     pressure=None if pressure is None else np.asarray(pressure, float), norms_sq=sq)
+
+    def inner(self, a: np.ndarray, b: np.ndarray) -> float:
+        """Σ a·b over all unknowns (Newton's norms and slopes; a distributed system sums its ranks)."""
+        return float(np.vdot(a, b))
+
+    def nodal_displacement(self, d: np.ndarray) -> np.ndarray:
+        """u(X_I) = Σ_J Ψ_J(X_I) d_J at every node, (N, 3) cm (the RK interpolant at the nodes)."""
+        if self._psi_nodes is None:
+            from ..rk import shape_functions
+
+            X = np.asarray(self.model.X, float)
+            self._psi_nodes = sp.csr_matrix(shape_functions(X, X, self.scni.support, **self.rk_kw))
+        return np.asarray(self._psi_nodes @ d)
 
     def linearised_pressure(self, state: State, dd: np.ndarray) -> np.ndarray:
         """Patch pressure after the update ``dd`` (N, 3) cm from ``state``, linearised:
@@ -596,6 +620,48 @@ class MechanicalSystem:
             out["nnz_per_row" if reach is None else "preconditioner_nnz_per_row"] = round(asm.nnz / (3 * self.n_nodes), 1)
         return out
 
+    # -- what the load-step driver reads (a distributed system gathers them to rank 0) -----------
+
+    def step_output(self, state: State) -> dict:
+        """The results of a converged state: ``d``, ``u`` (nodal displacements) (N, 3) cm, ``cauchy``
+        (N, 6) N/cm² (Voigt), and per reaction name ``reaction`` (3,) N, ``prescribed`` (3,) cm and
+        ``gaps`` (:meth:`.boundary.Constraints.gaps`)."""
+        from .results import cauchy_voigt
+
+        d, t = state.d, state.t
+        u = self.nodal_displacement(d)
+        c = self.constraints
+        return dict(d=np.array(d, float), u=u, reaction=c.reactions(d, t), prescribed=c.prescribed(t),
+                    gaps=c.gaps(d, t, u), cauchy=cauchy_voigt(self.cauchy(state)))
+
+    def constrained_components(self) -> dict[str, np.ndarray]:
+        """Constrained components per reaction name, (3,) bool."""
+        return self.constraints.constrained_components()
+
+    def ellipticity_minimum(self, state: State, directions: np.ndarray) -> np.ndarray:
+        """The material law's smallest acoustic-tensor eigenvalue at every node over ``directions``
+        (:func:`.ellipticity.acoustic_minimum`), (N,) N/cm²."""
+        from .ellipticity import acoustic_minimum
+
+        _, A = self.material_response(state.F, state.alpha)
+        return acoustic_minimum(state.F, A, directions)
+
+    def gather(self, x: np.ndarray) -> np.ndarray:
+        """The whole model's array of per-node values ``x`` (a distributed system's rank 0 gathers them)."""
+        return x
+
+    def owned_of(self, x: np.ndarray) -> np.ndarray:
+        """The rows of a whole-model array that this system's unknowns are (all of them)."""
+        return x
+
+    def memory_for_checkpoint(self, memory):
+        """A solver memory as a checkpoint keeps it (a distributed system gathers it)."""
+        return memory
+
+    def memory_from_checkpoint(self, memory):
+        """A checkpoint's solver memory as this system's solver takes it."""
+        return memory
+
     def strain_energy(self, F: np.ndarray, alpha: float) -> float:
         """Σ_L V_L W(F_L), N·cm."""
         W = np.empty(F.shape[0])
@@ -653,8 +719,13 @@ def check_model(model: Model) -> None:
                              "fibre direction")
 
 
-def build_system(model: Model, cfg: SolveConfig) -> tuple[MechanicalSystem, dict]:
+def build_system(model: Model, cfg: SolveConfig, *, supports: np.ndarray | None = None, beta: float | None = None,
+                 n_total: int | None = None) -> tuple[MechanicalSystem, dict]:
     """Assemble everything that does not change during the solve.
+
+    ``supports`` (N, 3) cm, ``beta`` N/cm³ and ``n_total`` are given by a distributed build
+    (:mod:`.distributed`), whose ``model`` is one rank's part: the RK supports and penalty number of
+    the whole model and its node count (the residual floor); by default they come from ``model``.
 
     Returns
     -------
@@ -668,7 +739,7 @@ def build_system(model: Model, cfg: SolveConfig) -> tuple[MechanicalSystem, dict
     stab = cfg.stabilization.method != "none" and cfg.stabilization.coefficient > 0
     rk_kw = dict(kernel=cfg.support.kernel, order=cfg.support.order, support_shape=cfg.support.shape)
     bcs = list(cfg.boundary_conditions)
-    scni, info["supports_enlarged"] = model_scni(model, cfg, face_gradients=stab)
+    scni, info["supports_enlarged"] = model_scni(model, cfg, face_gradients=stab, supports=supports)
     sup = scni.support
     info["scni_s"] = time.perf_counter() - t0
     materials = solve_materials(cfg)
@@ -680,7 +751,8 @@ def build_system(model: Model, cfg: SolveConfig) -> tuple[MechanicalSystem, dict
         kw = material_kw(materials[c], model.fiber[idx], 0.0)
         A0[idx] = materials[c].stress_tangent(np.ascontiguousarray(ident[idx]), **kw)[1]
     t3 = time.perf_counter()
-    beta = cfg.penalty.beta if cfg.penalty.beta is not None else penalty_number(A0, model.spacing, cfg.penalty.factor)
+    if beta is None:
+        beta = cfg.penalty.beta if cfg.penalty.beta is not None else penalty_number(A0, model.spacing, cfg.penalty.factor)
     constraints = build_constraints(model, bcs, scni.faces, sup, beta, at=cfg.penalty.at, **rk_kw)
     info["penalty_s"] = time.perf_counter() - t3
     t2 = time.perf_counter()
@@ -689,18 +761,20 @@ def build_system(model: Model, cfg: SolveConfig) -> tuple[MechanicalSystem, dict
                               held_patches=cfg.volumetric.held)
     info["stabilization_s"] = time.perf_counter() - t2
     # absolute residual floor (N): round-off level of the penalty forces β w (u − g)
-    system.atol = 1e-15 * beta * float(np.prod(model.spacing)) * max(1, model.n_nodes) ** 0.5
+    system.atol = 1e-15 * beta * float(np.prod(model.spacing)) * max(1, model.n_nodes if n_total is None else n_total) ** 0.5
+    system.rk_kw = rk_kw
     nominal = support_radius(model.spacing, cfg.support.a_over_h)
     info.update(beta=beta, support_cm=nominal.tolist(), n_nodes=model.n_nodes,
                 n_constraint_points=int(constraints.points.shape[0]), build_s=time.perf_counter() - t0)
-    if not constraints.points.shape[0]:
+    if not constraints.points.shape[0] and n_total is None:
         _LOG.warning("no boundary condition constrains any node: the stiffness is singular")
     return system, info
 
 
-def model_scni(model: Model, cfg: SolveConfig, *, face_gradients: bool = False) -> tuple[SCNI, int]:
+def model_scni(model: Model, cfg: SolveConfig, *, face_gradients: bool = False,
+               supports: np.ndarray | None = None) -> tuple[SCNI, int]:
     """The SCNI operators of a solve of ``model`` with ``cfg`` (the supports of :func:`node_supports`,
-    end faces held at their vertices by the vertex rule of ``penalty.at``).
+    or ``supports`` (N, 3) cm; end faces held at their vertices by the vertex rule of ``penalty.at``).
 
     Returns
     -------
@@ -709,7 +783,10 @@ def model_scni(model: Model, cfg: SolveConfig, *, face_gradients: bool = False) 
     n_enlarged : int
         Nodes whose support was enlarged.
     """
-    sup, n_enlarged = node_supports(model, cfg)
+    if supports is None:
+        sup, n_enlarged = node_supports(model, cfg)
+    else:
+        sup, n_enlarged = np.asarray(supports, float), 0
     faces = cell_faces(model.X, model.ijk, np.asarray(model.spacing, float))
     vf = vertex_rule_faces(model, list(cfg.boundary_conditions), faces, at=cfg.penalty.at)
     scni = build_scni(model.X, model.ijk, model.spacing, sup, face_gradients=face_gradients, faces=faces,

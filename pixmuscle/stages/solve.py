@@ -159,10 +159,8 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
         if not root:
             progress = False
         # converged steps are checkpointed beside the results so that a killed solve resumes where it
-        # was (not under mpiexec: there every rank would have to agree on the checkpoint)
-        keep = None
-        if parallel.size() == 1:
-            keep = _Checkpointer(checkpoint_path(out_path), checkpoint_key(cfg, inputs), cfg.steps)
+        # was; under mpiexec rank 0 writes it (the whole model's d) and every rank reads it to resume
+        keep = _Checkpointer(checkpoint_path(out_path), checkpoint_key(cfg, inputs), cfg.steps)
         kw = dict(activation=ramp, resume=keep and _resume(keep.path, keep.key, cfg.steps), on_checkpoint=keep)
         try:
             if progress is None:
@@ -178,7 +176,7 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
                              attrs=stage_attrs("solve", inputs, warnings, synthetic=synthetic))
                 _LOG.error("solve failed; converged steps written to %s (status: %s)", out_path, partial.status)
                 exc.results_path = str(out_path)  # the CLI prints it
-            if keep is not None:  # the same command would fail the same way: nothing to resume
+            if root:  # the same command would fail the same way: nothing to resume
                 keep.remove()
             raise
     if not root:
@@ -188,12 +186,11 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
         save_results(out_path, results, config=cfg, inputs=inputs,
                      attrs=stage_attrs("solve", inputs, warnings, synthetic=synthetic))
     except OSError:  # e.g. a full disk: the solve is not lost
-        if keep is not None and keep.path.exists():
+        if keep.path.exists():
             _LOG.warning("the converged load steps are kept in %s: run the same command again to resume from "
                          "them", keep.path)
         raise
-    if keep is not None:
-        keep.remove()
+    keep.remove()
     info = results.info
     _LOG.info("solve: done in %.1f s (build %.1f s, %d assemblies %.1f s, linear solves %.1f s)", info.get("total_s", 0.0),
               info.get("build_s", 0.0), info.get("n_assembly", 0), info.get("assembly_s", 0.0),

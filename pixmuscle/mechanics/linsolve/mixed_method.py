@@ -72,6 +72,15 @@ class MixedBlocks:
         return self.w * self.w * (1.0 / self.D + scale / self.mass)
 
 
+def box_signs(box: np.ndarray) -> np.ndarray:
+    """A fixed ±1 per patch from its box indices alone (a hash of them): the probe signs of a
+    distributed solve, the same whichever ranks own the patches."""
+    h = (np.asarray(box, np.int64) * np.array([73856093, 19349663, 83492791])).sum(axis=1)
+    h ^= h >> 13
+    h = (h * 0x5BD1E995) & 0xFFFFFFFF
+    return np.where((h >> 15) & 1, -1.0, 1.0)
+
+
 def probe_colours(box: np.ndarray, spacing: int) -> tuple[np.ndarray, np.ndarray]:
     """Colour (0 … spacing³ − 1) and fixed random sign (±1, seed 0) of each patch for
     :func:`probed_schur_diagonal`, from the patches' box indices ``box`` (N_p, 3) on the patch grid."""
@@ -242,7 +251,8 @@ class Pass:
 
 
 def refine(mixed_pass: Callable[..., Pass], condensed_residual: Callable[[np.ndarray], np.ndarray], b: np.ndarray,
-           rtol: float, maxiter: int, floor: float) -> tuple[np.ndarray, int, str, int]:
+           rtol: float, maxiter: int, floor: float,
+           norm: Callable[[np.ndarray], float] = np.linalg.norm) -> tuple[np.ndarray, int, str, int]:
     """Solve K x = b (the condensed system, 3N) to ‖b − K x‖ ≤ ``rtol`` ‖b‖ by mixed solves.
 
     The condensed residual of a mixed iterate, r₁ + Gᵀ (D/w) r₂, can exceed the mixed one by up to
@@ -264,6 +274,8 @@ def refine(mixed_pass: Callable[..., Pass], condensed_residual: Callable[[np.nda
     maxiter : int
     floor : float
         Round-off floor of the mixed residual, relative.
+    norm : callable
+        Euclidean norm of a residual (a distributed solve's sums over the ranks' rows).
 
     Returns
     -------
@@ -276,12 +288,12 @@ def refine(mixed_pass: Callable[..., Pass], condensed_residual: Callable[[np.nda
     """
     b = np.asarray(b, float)
     x = np.zeros(b.size)
-    bn = float(np.linalg.norm(b))
+    bn = float(norm(b))
     if bn == 0.0:
         return x, 0, "converged", 0
     total, lag, res, status = 0, 1.0, b, "maxiter"
     for attempt in range(MAX_PASSES):
-        rn = float(np.linalg.norm(res))
+        rn = float(norm(res))
         target = rtol if not attempt else refinement_target(rtol, bn, rn, lag, floor)
         p = mixed_pass(res, x, target, lag, maxiter - total, attempt)
         total += p.iterations
@@ -293,5 +305,5 @@ def refine(mixed_pass: Callable[..., Pass], condensed_residual: Callable[[np.nda
         if total >= maxiter:
             return x, total, "maxiter", attempt + 1
         res = condensed_residual(x) if p.residual is None else p.residual
-    status = "converged" if float(np.linalg.norm(res)) <= rtol * bn else "maxiter"
+    status = "converged" if float(norm(res)) <= rtol * bn else "maxiter"
     return x, total, status, MAX_PASSES

@@ -1,16 +1,15 @@
 """Backend ``petsc``: the Newton systems solved by PETSc (petsc4py), on one or several MPI ranks.
 
-The nodes are cut into slabs of voxel slices (:func:`slab_partition`), one slab per rank; each
-rank assembles the tangent rows of its own nodes (:meth:`.operator.SystemOperator.owned_rows`: its
-nodes plus a halo of one support radius) into a distributed PETSc AIJ matrix (block size 3), so no rank holds
-the whole tangent. The system is solved with a PETSc Krylov method, by default
-GMRES (the tangent of activated muscle is symmetric but
-indefinite) preconditioned by PETSc's smoothed-aggregation multigrid (GAMG) with the six rigid-body
-modes of the node coordinates as near-null space. ``solve.solver.petsc_options`` go to PETSc's
-options database (``{ksp_type: minres, pc_type: hypre}`` etc.; any ``-ksp_*``/``-pc_*`` option
-without the dash). Right-hand sides and solutions are full vectors on every rank (the Newton
-iteration, the material evaluation and the model arrays are replicated on every rank).
-
+Under ``mpiexec -n P`` the system is distributed (:mod:`..distributed`): each rank holds its own
+nodes (a recursive coordinate bisection of the voxel grid) plus a halo and assembles the tangent
+rows of its own nodes (:meth:`.operator.SystemOperator.owned_rows` of its held system) into a
+distributed PETSc AIJ matrix (block size 3), so no rank holds the whole tangent. The system is
+solved with a PETSc Krylov method, by default GMRES (the tangent of activated muscle is symmetric
+but indefinite) preconditioned by PETSc's smoothed-aggregation multigrid (GAMG) with the six
+rigid-body modes of the node coordinates as near-null space. ``solve.solver.petsc_options`` go to
+PETSc's options database (``{ksp_type: minres, pc_type: hypre}`` etc.; any ``-ksp_*``/``-pc_*``
+option without the dash). Right-hand sides and solutions are the rank's own rows. Without
+``mpiexec`` the serial system is used as a distributed system of one rank.
 petsc4py is optional: ``make venv`` installs it on Debian/Ubuntu as root (README, docs/petsc.md).
 """
 
@@ -68,30 +67,6 @@ def available() -> bool:
     return True
 
 
-def slab_partition(ijk: np.ndarray, parts: int) -> tuple[np.ndarray, np.ndarray]:
-    """Cut the nodes into ``parts`` slabs of whole voxel slices with about equal node counts.
-
-    Parameters
-    ----------
-    ijk : (N, 3) int
-        Voxel indices; the slices are the third index.
-    parts : int
-
-    Returns
-    -------
-    order : (N,) int
-        Nodes by slice (stable): slab r is ``order[bounds[r]:bounds[r + 1]]``.
-    bounds : (parts + 1,) int
-    """
-    k = np.asarray(ijk)[:, 2]
-    order = np.argsort(k, kind="stable")
-    ks = k[order]
-    n = order.size
-    cuts = np.searchsorted(ks, ks[np.minimum((np.arange(1, parts) * n) // parts, n - 1)], side="left")
-    bounds = np.concatenate([[0], cuts, [n]]).astype(np.int64)
-    return order, np.maximum.accumulate(bounds)
-
-
 @dataclasses.dataclass(frozen=True)
 class PETScOptions(Iterative):
     """Options of ``solve.solver: {backend: petsc, …}``."""
@@ -103,6 +78,29 @@ class PETScOptions(Iterative):
             raise ValueError(f"backend: petsc: {INSTALL_HINT}")
 
 
+def distributed(system, state=None):
+    """``system`` (and ``state``) as a :class:`..distributed.DistributedSystem` (and its state): a
+    serial system becomes one of a single rank (only without ``mpiexec``)."""
+    from ..distributed import DistributedState, DistributedSystem
+
+    if isinstance(system, DistributedSystem):
+        return system, state
+    PETSc = import_petsc()
+    if PETSc.COMM_WORLD.getSize() > 1:
+        raise SolverError("under mpiexec the PETSc backends solve the distributed system "
+                          "(pixmuscle.mechanics.distributed.build_distributed_system), not a whole one")
+    ds = DistributedSystem.single(system)
+    if state is None or isinstance(state, DistributedState):
+        return ds, state
+    vol = None
+    if getattr(state, "vol", None) is not None:
+        from ..distributed.system import OwnedVolumetric
+
+        vol = OwnedVolumetric(state.vol.pressure)
+    return ds, DistributedState(d=state.d, t=state.t, alpha=state.alpha, r=state.r, force_scale=state.force_scale,
+                                held=state, vol=vol, pressure=getattr(state, "pressure", None))
+
+
 @BACKENDS.register("petsc", options=PETScOptions)
 class PETScSolver(LinearSolver):
     """PETSc KSP on the distributed assembled tangent (see the module docstring).
@@ -110,9 +108,9 @@ class PETScSolver(LinearSolver):
     Parameters
     ----------
     X : (N, 3) float
-        Node coordinates, cm (rigid-body near-null space).
+        Node coordinates, cm (unused: the system's layout gives each rank its nodes).
     ijk : (N, 3) int
-        Voxel indices (slab partition).
+        Voxel indices (unused, as ``X``).
     rtol : float
         Relative residual when the caller gives none.
     maxiter : int
@@ -122,49 +120,45 @@ class PETScSolver(LinearSolver):
 
     name = "petsc"
 
-    def __init__(self, X, ijk, rtol: float = 1e-10, maxiter: int = 2000, options: dict | None = None):
+    def __init__(self, X=None, ijk=None, rtol: float = 1e-10, maxiter: int = 2000, options: dict | None = None):
         super().__init__()
         PETSc = import_petsc()
-
         self.PETSc = PETSc
         self.comm = PETSc.COMM_WORLD
         self.rank, self.size = self.comm.getRank(), self.comm.getSize()
-        self.X = np.asarray(X, float)
-        self.order, self.bounds = slab_partition(ijk, self.size)
-        self.owned = self.order[self.bounds[self.rank]:self.bounds[self.rank + 1]]
-        dof = (3 * self.order[:, None] + np.arange(3)).ravel()
-        self.dof = dof  # PETSc global index p ↔ model dof dof[p]
-        self.pos = np.empty_like(dof)
-        self.pos[dof] = np.arange(dof.size)
-        self.lo, self.hi = 3 * int(self.bounds[self.rank]), 3 * int(self.bounds[self.rank + 1])
         self.rtol, self.maxiter = rtol, maxiter
         self.options = set_options(_PREFIX, DEFAULT_OPTIONS, options)
+        self.layout = None
         self._rows = None
         self._ksp = None
-        self.info.update(krylov_iterations=0, preconditioner_builds=0, ranks=self.size,
-                         owned_nodes=int(self.owned.size))
+        self.info.update(krylov_iterations=0, preconditioner_builds=0, ranks=self.size, owned_nodes=0)
 
     @classmethod
     def from_options(cls, opts: PETScOptions, X, *, ijk=None, width=(4, 4, 4)) -> PETScSolver:
-        if ijk is None:
-            raise ValueError("petsc needs the voxel indices ijk of the nodes")
         return cls(X, ijk, rtol=opts.rtol, maxiter=opts.maxiter, options=dict(opts.petsc_options))
+
+    def _attach(self, system, state):
+        """The distributed system and state, and this rank's layout (kept)."""
+        system, state = distributed(system, state)
+        self.layout = system.layout
+        self.info["owned_nodes"] = int(self.layout.n_own)
+        return system, state
 
     def prepare(self, system, state):
         PETSc = self.PETSc
         t0 = time.perf_counter()
+        system, state = self._attach(system, state)
         if self._rows is None:
-            self._rows = system.owned_rows(self.owned)
-            self.info["halo_cells"] = int(self._rows.cells.size - self.owned.size)
-        K = self._rows.rows(state)
-        A = self._displacement_matrix(K)
+            self._rows = system.held.owned_rows(self.layout.own)
+            self.info["halo_cells"] = int(self._rows.cells.size - self.layout.n_own)
+        K = self._rows.rows(state.held)
+        A = self._displacement_matrix(K, system)
         if self._ksp is None:
             self._ksp = PETSc.KSP().create(comm=self.comm)
             self._ksp.setOptionsPrefix(_PREFIX)
             self._ksp.setOperators(A)
             self._ksp.setFromOptions()
             self._b, self._x = A.createVecs()
-            self._all, self._xall = PETSc.Scatter.toAll(self._x)
         else:
             self._ksp.setOperators(A)
         self._A = A
@@ -172,36 +166,39 @@ class PETScSolver(LinearSolver):
         self.info["setup_s"] = time.perf_counter() - t0
         self.info["nnz_local"] = int(K.nnz)
 
-    def _displacement_matrix(self, K):
-        """The owned rows ``K`` (CSR, 3n × 3N, model dof columns) as a distributed AIJ matrix (block
-        size 3, PETSc's dof order) with the rigid-body modes of the nodes as near-null space."""
+    def _columns(self, cols: np.ndarray) -> np.ndarray:
+        """Held dof columns → global PETSc dof columns."""
+        cols = np.asarray(cols, np.int64)
+        return 3 * self.layout.petsc[cols // 3] + cols % 3
+
+    def _displacement_matrix(self, K, system):
+        """The owned rows ``K`` (CSR, 3n × 3n_held, held dof columns) as a distributed AIJ matrix
+        (block size 3, PETSc's dof order) with the rigid-body modes of the nodes as near-null space."""
         PETSc = self.PETSc
         K = K.copy()
-        K.indices = self.pos[K.indices].astype(PETSc.IntType)
+        K.indices = self._columns(K.indices).astype(PETSc.IntType)
         K.has_sorted_indices = False
         K.sort_indices()
-        n_loc, n = self.hi - self.lo, self.dof.size
+        lay = self.layout
+        n_loc, n = 3 * lay.n_own, 3 * lay.n_global
         A = PETSc.Mat().createAIJ(size=((n_loc, n), (n_loc, n)), bsize=3, comm=self.comm,
                                   csr=(K.indptr.astype(PETSc.IntType), K.indices, K.data))
         A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         A.assemble()
         coords = PETSc.Vec().createMPI((n_loc, n), bsize=3, comm=self.comm)
-        coords.setArray(self.X[self.owned].ravel())
+        coords.setArray(np.asarray(system.held.model.X, float)[lay.own].ravel())
         A.setNearNullSpace(PETSc.NullSpace().createRigidBody(coords))
         return A
 
     def solve(self, r, rtol=None):
         t0 = time.perf_counter()
         rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
-        b = np.asarray(r, float).ravel()[self.dof[self.lo:self.hi]]
-        self._b.setArray(b)
+        self._b.setArray(np.asarray(r, float).ravel())
         self._ksp.setTolerances(rtol=rtol, atol=0.0, max_it=self.maxiter)
         self._ksp.solve(self._b, self._x)
         its = int(self._ksp.getIterationNumber())
         reason = int(self._ksp.getConvergedReason())
-        self._all.scatter(self._x, self._xall, addv=False, mode=self.PETSc.ScatterMode.FORWARD)
-        x = np.empty(self.dof.size)
-        x[self.dof] = self._xall.getArray()
+        x = self._x.getArray().copy()
         self.info["iterations"] = its
         self.info["krylov_iterations"] += its
         self.info["solve_s"] = time.perf_counter() - t0

@@ -15,14 +15,12 @@ K/μ with 2 × 2 × 3 patches):
 patch terms of the patches whose pressure is an unknown (every patch but the single-node patches of
 ``volumetric.held: own``, whose terms stay in K_d).
 
-What is distributed. The displacement rows are those of ``petsc`` (slabs of whole voxel slices,
-:func:`.petsc.slab_partition`); each rank assembles its rows of K_d
-(:meth:`.rows.RowAssembler.rows` with ``pressure_free``). A pressure (patch) belongs to the rank of
-its first node in slab order (the lowest rank among its nodes); each rank assembles the rows of G of
-its own patches (:meth:`.mixed.PatchDivergence.sparse` restricted to them: the product still runs
-over the replicated (3N × N) smoothed-gradient operator, so this part costs O(N) time and memory per
-rank, like the replicated material evaluation), and w Gᵀ is PETSc's transpose of the distributed w G.
-The four blocks form a MatNest.
+What is distributed. Under ``mpiexec`` the system is (:mod:`..distributed`): each rank holds its
+own nodes plus a halo. Its displacement rows are its own nodes'; a pressure (a free patch) belongs
+to the rank that owns the patch's node of lowest model index, and each rank assembles the rows of G
+of its own patches from its held system (:meth:`.operator.SystemOperator.patch_divergence`), whose
+columns are displacement unknowns of its own nodes and halo; w Gᵀ is PETSc's transpose of the
+distributed w G. The four blocks form a MatNest. Without ``mpiexec`` the serial system is one rank's.
 
 The solver. PETSc's KSP GMRES preconditioned on the right with ``PCFIELDSPLIT``: ``pc_fieldsplit_type schur``,
 ``pc_fieldsplit_schur_fact_type upper``, i.e. P = [M_A, w Gᵀ; 0, −Ŝ] as in ``mixed_amg``; the
@@ -34,9 +32,9 @@ Jacobi on the user matrix −Ŝ (``pc_fieldsplit_schur_precondition user``),
     Ŝ = w² (D⁻¹ + diag(G M_A Gᵀ))      (``schur: probed``, the default, as in ``mixed_amg``)
     Ŝ = w² (D⁻¹ + c / (μ_p V_p)),    c = ``schur_scale``      (``schur: mass``).
 
-The probed diagonal (:func:`.mixed.probed_schur_diagonal`'s colours and signs) applies the
-displacement split's own preconditioner outside the KSP, probe_spacing³ times (27) per Newton
-system, with PETSc's distributed w G and w Gᵀ, so one rank and several probe the same diagonal.
+The probed diagonal (:func:`.mixed.probed_schur_diagonal`'s colours; signs from each patch's box,
+:func:`.mixed_method.box_signs`) applies the displacement split's own preconditioner outside the
+KSP, probe_spacing³ times (27) per Newton system, with PETSc's distributed w G and w Gᵀ.
 
 Region solves. The penalty rows of the boundary conditions, β Ψ(x_c)ᵀ w_c Ψ(x_c), couple every node
 in the support of a constraint point; with the default penalty number β scales with the largest
@@ -53,7 +51,8 @@ In PETSc: the displacement split's PC is a ``python`` PC, :class:`DisplacementPr
 BoomerAMG (GAMG without hypre) on this rank's rows of ``mixed_amg``'s positive stand-in of K_d,
 then :class:`.subdomains.RegionSolves` (PARDISO) on the part of each region among this rank's
 nodes, multiplicative among a rank's regions, additive across ranks. The K_d block of the Krylov
-operator is this rank's rows of the matrix-free K_d (nothing assembled). The multigrid, region
+operator is this rank's rows of the matrix-free K_d of its held system (nothing assembled; the
+halo's values come from their owners at each product). The multigrid, region
 factors and probed Schur diagonal are kept across Newton systems by :class:`.rebuild.RebuildPolicy`
 (as ``mixed_amg``'s). A ``petsc_options`` entry for ``fieldsplit_u_pc_type`` (e.g. ``lu``,
 ``hypre``), or ``region_solves: false`` (GAMG alone), assembles the rows of K_d for that PETSc PC
@@ -65,7 +64,7 @@ two blocks, makes one KSP solve to the requested mixed tolerance and gathers (Δ
 A condensed update (:meth:`PETScMixedSolver.solve`) asks for a relative residual of the condensed system. The condensed residual of a
 mixed iterate, r − K Δd = r₁ + Gᵀ (D/w) r₂, can exceed the mixed one by up to K/μ (the pressure rows
 are weighted by D/w). So the mixed system is solved to the requested tolerance, the condensed
-residual of the update is computed with the matrix-free condensed tangent (replicated on every rank,
+residual of the update is computed with the matrix-free condensed tangent (each rank's own rows,
 :meth:`~pixmuscle.mechanics.system.MechanicalSystem.tangent_operator`), and while it is too large the
 update is refined: a new mixed solve for the condensed residual so far, to a target tightened by the
 lag (condensed residual per mixed residual) the previous pass showed, at most eight passes.
@@ -95,8 +94,8 @@ import numpy as np
 
 from ...errors import SolverError, SolverGaveUp
 from . import multigrid
-from .base import BACKENDS
-from .mixed_method import MixedBlocks, Pass, probe_colours, probe_diagonal, refine
+from .base import BACKENDS, SolverMemory, built_from, memory_state
+from .mixed_method import MixedBlocks, Pass, box_signs, probe_colours, probe_diagonal, refine
 from .petsc import DEFAULT_OPTIONS as CONDENSED_OPTIONS
 from .petsc import PETScOptions, PETScSolver, set_options
 from .rebuild import RebuildPolicy
@@ -149,25 +148,23 @@ class DisplacementPreconditioner:
         self.s = solver
         self.amg = None
         self.regions = None
-        self._r = None
 
     def build(self, system, state) -> None:
-        s, PETSc = self.s, self.s.PETSc
+        s = self.s
         if self.amg is not None:
             self.amg.destroy()
             self.amg = None
         if self.regions is not None:
             self.regions.release()
-        A = _owned_block_rows(system.preconditioner_matrix(state, s.reach, volumetric="held"), s.order, s.bounds,
-                              s.rank, PETSc)
-        self.amg = _multigrid(A, s, PETSc)
+        held, lay = system.held, system.layout
+        A = _owned_block_rows(held.preconditioner_matrix(state.held, s.reach, volumetric="held"), lay, s.PETSc)
+        self.amg = _multigrid(A, s, system, s.PETSc)
         if s.region_solves:
             if self.regions is None:
-                owned = np.sort(s.owned)
-                parts = [np.intersect1d(nodes, owned, assume_unique=True) for nodes in system.stiff_regions()]
-                self.regions = system.region_solves([p for p in parts if p.size], s.ijk)
-                s.info["region_nodes"] = int(self.regions.n_nodes)
-            self.regions.update(state)
+                parts = [np.intersect1d(nodes, lay.own, assume_unique=True) for nodes in held.stiff_regions()]
+                self.regions = held.region_solves([p for p in parts if p.size], held.model.ijk)
+                s.info["region_nodes"] = int(lay.sum(int(self.regions.n_nodes)))
+            self.regions.update(state.held)
 
     def setUp(self, pc) -> None:  # built by build(), not by PETSc
         pass
@@ -176,44 +173,39 @@ class DisplacementPreconditioner:
         self.amg.apply(x, y)
         if self.regions is None:
             return
-        s = self.s
-        own = s.dof[s.lo:s.hi]
-        z = np.empty(s.dof.size)
-        z[s.dof] = s._gathered(y.getArray(readonly=True))  # the cycle's result at every node (halo of the region rows)
+        lay = self.s.layout
+        z = lay.to_held(y.getArray(readonly=True)).ravel()  # the cycle's result with the halo (collective)
         if not self.regions.parts:
             return
-        if self._r is None:
-            self._r = np.zeros(s.dof.size)
-        self._r[own] = x.getArray(readonly=True)  # the regions read r on their own (owned) dofs only
-        y.setArray(self.regions.correct(self._r, z)[own])
+        own = self.s.own_dofs
+        r = np.zeros(z.size)
+        r[own] = x.getArray(readonly=True)  # the regions read r on their own (owned) dofs only
+        y.setArray(self.regions.correct(r, z)[own])
 
     def destroy(self, pc=None) -> None:
         """Nothing: PETSc destroys the split's PC with each Newton system's KSP, and the
         multigrid and region factors outlive it until the next build."""
 
 
-def _owned_block_rows(K, order, bounds, rank, PETSc):
-    """The block rows of rank ``rank``'s nodes of the BSR ``K`` (3 × 3 blocks), columns in the slab
-    order of the PETSc numbering, as a distributed BAIJ matrix."""
-    n = order.size
-    owned = order[bounds[rank]:bounds[rank + 1]]
-    pos = np.empty(n, np.int64)
-    pos[order] = np.arange(n)
-    counts = np.diff(K.indptr)[owned]
-    start = np.repeat(K.indptr[owned], counts)
+def _owned_block_rows(K, layout, PETSc):
+    """The block rows of this rank's own nodes of the held system's BSR ``K`` (3 × 3 blocks), columns
+    in the global PETSc node order, as a distributed BAIJ matrix."""
+    own = layout.own
+    counts = np.diff(K.indptr)[own]
+    start = np.repeat(K.indptr[own], counts)
     idx = start + (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts))
-    cols = pos[K.indices[idx]]
-    row = np.repeat(np.arange(owned.size), counts)
+    cols = layout.petsc[K.indices[idx]]
+    row = np.repeat(np.arange(own.size), counts)
     by = np.lexsort((cols, row))
     indptr = np.concatenate([[0], np.cumsum(counts)])
     data = K.data[idx[by]]
     del K
     from .amg_processes import hypre_matrix
 
-    return hypre_matrix(PETSc.COMM_WORLD, indptr, cols[by], data, owned.size, n)
+    return hypre_matrix(layout.comm, indptr, cols[by], data, own.size, layout.n_global)
 
 
-def _multigrid(A, s, PETSc):
+def _multigrid(A, s, system, PETSc):
     """The multigrid PC on the stand-in rows ``A``: BoomerAMG where PETSc has hypre, else GAMG."""
     from .amg_processes import hypre_pc
 
@@ -221,10 +213,11 @@ def _multigrid(A, s, PETSc):
     if multigrid.hypre_available():
         A, pc, _, _ = hypre_pc(A, _AMG_PREFIX, {**multigrid.BOOMERAMG_OPTIONS, **amg_opts})
     else:
-        coords = PETSc.Vec().createMPI((3 * s.owned.size, s.dof.size), bsize=3, comm=s.comm)
-        coords.setArray(s.X[s.owned].ravel())
+        lay = system.layout
+        coords = PETSc.Vec().createMPI((3 * lay.n_own, 3 * lay.n_global), bsize=3, comm=lay.comm)
+        coords.setArray(np.asarray(system.held.model.X, float)[lay.own].ravel())
         A.setNearNullSpace(PETSc.NullSpace().createRigidBody(coords))
-        pc = PETSc.PC().create(comm=s.comm)
+        pc = PETSc.PC().create(comm=lay.comm)
         pc.setOptionsPrefix(_AMG_PREFIX)
         pc.setOperators(A)
         set_options(_AMG_PREFIX, {k: v for k, v in CONDENSED_OPTIONS.items() if k.startswith(("pc_", "mg_"))}, amg_opts)
@@ -241,9 +234,9 @@ class PETScMixedSolver(PETScSolver):
     Parameters
     ----------
     X : (N, 3) float
-        Node coordinates, cm.
+        Node coordinates, cm (unused: the system's layout gives each rank its nodes).
     ijk : (N, 3) int
-        Voxel indices.
+        Voxel indices (unused, as ``X``).
     rtol : float
         Relative condensed residual when the caller gives none.
     maxiter : int
@@ -270,7 +263,7 @@ class PETScMixedSolver(PETScSolver):
 
     name = "petsc_mixed"
 
-    def __init__(self, X, ijk, rtol: float = 1e-10, maxiter: int = 2000, options: dict | None = None,
+    def __init__(self, X=None, ijk=None, rtol: float = 1e-10, maxiter: int = 2000, options: dict | None = None,
                  schur_scale: float = 0.5, region_solves: bool = True, schur: str = "probed", probe_spacing: int = 3,
                  rebuild_cost: int = 40, give_up: float = 4.0, reach: int = 2):
         super().__init__(X, ijk, rtol=rtol, maxiter=maxiter, options=options)
@@ -287,7 +280,6 @@ class PETScMixedSolver(PETScSolver):
         self.schur_scale = float(schur_scale)
         self.schur = schur
         self.probe_spacing = int(probe_spacing)
-        self.ijk = np.asarray(ijk)
         self.region_solves = bool(region_solves)
         self.reach = int(reach)
         self.policy = RebuildPolicy(rebuild_cost, give_up, maxiter)
@@ -295,34 +287,50 @@ class PETScMixedSolver(PETScSolver):
         self._probe = None
         self._mixed = None
         self._press = None
-        self._gather = None
-        self._pgather = None
         self._space = None
+        self._built_at = None
+        self.own_dofs = None
         self.info.update(refinements=0, pressures=0, region_nodes=0, build_s=[])
 
     @classmethod
     def from_options(cls, opts: PETScMixedOptions, X, *, ijk=None, width=(4, 4, 4)) -> PETScMixedSolver:
-        if ijk is None:
-            raise ValueError("petsc_mixed needs the voxel indices ijk of the nodes")
         return cls(X, ijk, rtol=opts.rtol, maxiter=opts.maxiter, options=dict(opts.petsc_options),
                    schur_scale=opts.schur_scale, region_solves=opts.region_solves, schur=opts.schur,
                    probe_spacing=opts.probe_spacing, rebuild_cost=opts.rebuild_cost, give_up=opts.give_up,
                    reach=opts.reach)
 
-    def _pressure_partition(self, space):
-        """PETSc order of the pressure unknowns: the free patches by owning rank (the lowest rank
-        among their nodes). Returns the free patches in that order and the bounds per rank."""
-        rank_of_node = np.empty(self.dof.size // 3, np.int64)
-        rank_of_node[self.order] = np.repeat(np.arange(self.size), np.diff(self.bounds))
-        owner = np.full(space.n_patches, self.size, np.int64)
-        np.minimum.at(owner, space.patch_of, rank_of_node)
-        free = space.free
-        by_rank = np.argsort(owner[free], kind="stable")
-        patches = free[by_rank]
-        bounds = np.searchsorted(owner[patches], np.arange(self.size + 1), side="left")
-        return patches, bounds
+    @property
+    def memory_tag(self) -> str:
+        # preconditioners spread over other numbers of ranks differ in round-off: a resume with another starts afresh
+        return f"{self.name}/{self.size}"
+
+    def memory(self) -> SolverMemory | None:
+        """The state the displacement preconditioner was built from (this rank's rows) and the
+        rebuild rule's counters."""
+        if self._built_at is None:
+            return None
+        d, t, alpha, pressure = self._built_at
+        return SolverMemory(d, t, alpha, pressure=pressure, counters=self.policy.counters(), backend=self.memory_tag)
+
+    def recall(self, system, memory: SolverMemory) -> None:
+        """Build the displacement preconditioner at ``memory``'s state and restore the counters (one
+        the rule had marked stale is left for the next Newton system to rebuild)."""
+        if self._M is not None and not memory.counters["stale"]:
+            self.prepare(system, memory_state(system, memory))
+        self.policy.restore(memory.counters)
+
+    def _pressures(self, system):
+        """This rank's pressure unknowns: its own free patches (held numbering), which of its own
+        patches they are, and their first global index."""
+        lay = system.layout
+        own = lay.patches.own
+        sel = ~system.held.volumetric.held[own]
+        mine = own[sel]
+        self.info["pressures"] = int(lay.sum(int(mine.size)))
+        return mine, sel, int(lay.mpi.exscan(int(mine.size)) or 0), self.info["pressures"]
 
     def prepare(self, system, state):
+        system, state = self._attach(system, state)
         space = system.pressure_space()
         if space is None or space.free.size == 0:
             self._mixed = None
@@ -330,35 +338,29 @@ class PETScMixedSolver(PETScSolver):
             return
         PETSc = self.PETSc
         t0 = time.perf_counter()
+        lay, held = system.layout, system.held
         if self._press is None:
-            patches, bounds = self._pressure_partition(space)
-            self._press = (patches, bounds, patches[bounds[self.rank]:bounds[self.rank + 1]])
-            self.info["pressures"] = int(patches.size)
-        patches, pbounds, mine = self._press
-        n_loc, n = self.hi - self.lo, self.dof.size
-        m_loc, m = mine.size, patches.size
-        p0 = int(pbounds[self.rank])
-        if self._gather is None:  # the displacement part of a solution to every rank
-            xu = PETSc.Vec().createMPI((n_loc, n), comm=self.comm)
-            self._gather = (xu, *PETSc.Scatter.toAll(xu))
-        if self._pgather is None:  # and its pressure part
-            xp = PETSc.Vec().createMPI((m_loc, m), comm=self.comm)
-            self._pgather = (xp, *PETSc.Scatter.toAll(xp))
+            self._press = self._pressures(system)
+            self.own_dofs = (3 * lay.own[:, None] + np.arange(3)).ravel()
+        mine, _, p0, m = self._press
+        n_loc, n = 3 * lay.n_own, 3 * lay.n_global
+        m_loc = mine.size
 
-        full = system.tangent_operator(state)  # the condensed tangent, matrix-free: the stopping test
+        full = held.tangent_operator(state.held)  # the condensed tangent, matrix-free: the stopping test
         if self.assembled:
             if self._rows is None:
-                self._rows = system.owned_rows(self.owned)
-                self.info["halo_cells"] = int(self._rows.cells.size - self.owned.size)
-            A00 = self._displacement_matrix(self._rows.rows(state, pressure_free=True))
-        else:  # K_d matrix-free, this rank's rows of the replicated product (nothing assembled)
-            A00 = PETSc.Mat().createPython(((n_loc, n), (n_loc, n)), _OwnedRows(self, system.displacement_operator(state, tangent=full)),
+                self._rows = held.owned_rows(lay.own)
+                self.info["halo_cells"] = int(self._rows.cells.size - lay.n_own)
+            A00 = self._displacement_matrix(self._rows.rows(state.held, pressure_free=True), system)
+        else:  # K_d matrix-free: this rank's rows of its held system's product (nothing assembled)
+            A00 = PETSc.Mat().createPython(((n_loc, n), (n_loc, n)),
+                                           _OwnedRows(self, held.displacement_operator(state.held, tangent=full)),
                                            comm=self.comm)
             A00.setUp()
-        blocks = MixedBlocks(space, mine)  # w from all free patches: every rank has the same number
+        blocks = MixedBlocks(space, mine)  # w from all ranks' free patches
         w = blocks.w
-        G = (w * system.patch_divergence(state, mine).sparse()).tocsr()
-        G.indices = self.pos[G.indices]
+        G = (w * held.patch_divergence(state.held, mine).sparse()).tocsr()
+        G.indices = self._columns(G.indices)
         G.has_sorted_indices = False
         G.sort_indices()
         A10 = PETSc.Mat().createAIJ(size=((m_loc, m), (n_loc, n)), comm=self.comm,
@@ -415,6 +417,7 @@ class PETScMixedSolver(PETScSolver):
         """Build the displacement preconditioner (multigrid and region factors) at ``state``."""
         t0 = time.perf_counter()
         self._M.build(system, state)
+        self._built_at = built_from(state)
         self.policy.built()
         self.info["preconditioner_builds"] += 1
         self.info["build_s"].append(time.perf_counter() - t0)
@@ -437,8 +440,8 @@ class PETScMixedSolver(PETScSolver):
         self._build(mx["system"], mx["state"])
         if self.schur == "probed":
             A00, A01, A10, A11, S = mx["blocks"]
-            self._probe = self._probe_schur(self._space, ksp.getPC(), A01, A10, self._press[2])
-            self._set_schur(S, MixedBlocks(self._space, self._press[2]))
+            self._probe = self._probe_schur(self._space, ksp.getPC(), A01, A10, self._press[0])
+            self._set_schur(S, MixedBlocks(self._space, self._press[0]))
         ksp.setInitialGuessNonzero(True)
         ksp.setTolerances(rtol=rtol, atol=0.0, max_it=self.policy.retry_budget(rtol, its))
         ksp.solve(b, z)
@@ -465,15 +468,15 @@ class PETScMixedSolver(PETScSolver):
 
     def _probe_schur(self, space, pc, A01, A10, mine: np.ndarray) -> np.ndarray:
         """The diagonal of w² G M Gᵀ on this rank's patches, probed as in
-        :func:`.mixed_method.probed_schur_diagonal` (same colours and signs, so one rank and several
-        give the same numbers) with M the displacement split's preconditioner, applied outside the KSP."""
+        :func:`.mixed_method.probed_schur_diagonal` (colours of the patch grid, signs from each
+        patch's box: the same whichever rank owns it) with M the displacement split's preconditioner,
+        applied outside the KSP."""
         PETSc = self.PETSc
         pc.setUp()
         upc = pc.getFieldSplitSubKSP()[0].getPC()
         upc.setUp()
-        free = space.free  # mixed_amg's probe colours the free patches, in order
-        colour, sign = np.zeros(space.n_patches, np.int64), np.zeros(space.n_patches)
-        colour[free], sign[free] = probe_colours(space.box[free], self.probe_spacing)
+        colour, _ = probe_colours(space.box[mine], self.probe_spacing)
+        sign = box_signs(space.box[mine])
         q, g = A10.createVecLeft(), A10.createVecLeft()
         u, y = A01.createVecLeft(), A01.createVecLeft()
 
@@ -489,7 +492,7 @@ class PETScMixedSolver(PETScSolver):
             return g.norm(PETSc.NormType.INFINITY)
 
         # every rank takes every colour: the products are collective
-        probe = probe_diagonal(product, colour[mine], sign[mine], range(self.probe_spacing ** 3), largest)
+        probe = probe_diagonal(product, colour, sign, range(self.probe_spacing ** 3), largest)
         for v in (q, g, u, y):
             v.destroy()
         return probe
@@ -504,6 +507,14 @@ class PETScMixedSolver(PETScSolver):
         M.assemble()
         return M
 
+    def _owned_product(self, op, x: np.ndarray) -> np.ndarray:
+        """This rank's rows of ``op @ x`` for the held system's operator ``op`` and the owned values
+        ``x`` (3n,) of every rank (collective: the halo's values come from their owners)."""
+        return (op @ self.layout.to_held(x).ravel())[self.own_dofs]
+
+    def _norm(self, v: np.ndarray) -> float:
+        return float(np.sqrt(self.layout.sum(float(np.vdot(v, v)))))
+
     def solve(self, r, rtol=None):
         if self._mixed is None:
             return super().solve(r, rtol)
@@ -513,33 +524,32 @@ class PETScMixedSolver(PETScSolver):
         mx = self._mixed
         A, b, z, t, iu, K = mx["A"], mx["b"], mx["z"], mx["t"], mx["u"], mx["K"]
         rr = np.asarray(r, float).ravel()
-        bn = float(np.linalg.norm(rr))
-        own = self.dof[self.lo:self.hi]
+        bn = self._norm(rr)
         self.info["passes"] = []  # (mixed target, iterations, condensed relative residual after) per pass
         stale = [0]
 
         def mixed_pass(res, x, target, lag, budget, attempt) -> Pass:
             barr = b.getArray()
             barr[:] = 0.0
-            barr[iu] = res[own]
+            barr[iu] = res
             b.setArray(barr)
             its, status, stale_its = self._ksp_solve(target)
             stale[0] += stale_its
-            dx = np.zeros(rr.size)
             if status != "converged":
-                return Pass(dx, its, status)
+                return Pass(np.zeros(rr.size), its, status)
             A.mult(z, t)
             t.aypx(-1.0, b)  # t = b − A z, the true mixed residual
             mixed = t.norm()
-            dx[self.dof] = self._gathered(z.getArray()[iu])
-            left = rr - K @ (x + dx)
-            new = float(np.linalg.norm(left))
+            dx = z.getArray()[iu].copy()
+            left = rr - self._owned_product(K, x + dx)
+            new = self._norm(left)
             self.info["passes"].append((target, its, new / max(bn, 1e-300)))
             if new <= rtol * bn:
                 return Pass(dx, its, "converged", residual=left)
             return Pass(dx, its, "converged", lag=new / max(mixed, 1e-300), residual=left)  # condensed per mixed
 
-        x, total, status, passes = refine(mixed_pass, lambda x: rr - K @ x, rr, rtol, self.maxiter, _FLOOR)
+        x, total, status, passes = refine(mixed_pass, lambda x: rr - self._owned_product(K, x), rr, rtol, self.maxiter,
+                                          _FLOOR, norm=self._norm)
         self._close(t0, setup0, total, rtol)
         self.info["refinements"] += max(passes - 1, 0)
         if status != "converged":
@@ -555,18 +565,11 @@ class PETScMixedSolver(PETScSolver):
         self.info["setup_s"] += built
         self.info["solve_s"] = time.perf_counter() - t0 - built
 
-    def _gathered(self, owned: np.ndarray) -> np.ndarray:
-        """The displacement part of a solution (owned rows, PETSc order) on every rank, in PETSc order."""
-        xu, gather, xall = self._gather
-        xu.setArray(owned)
-        gather.scatter(xu, xall, addv=False, mode=self.PETSc.ScatterMode.FORWARD)
-        return xall.getArray()
-
     def solve_mixed(self, r, rp, rtol=None):
         """One update of Newton on the mixed form, as :meth:`.mixed.MixedBlockSolver.solve_mixed`: the
-        force residual ``r`` (3N,) N and the pressure residual ``rp`` (N_p,) as the two blocks, one
-        KSP solve stopped on the mixed residual; returns (Δd (3N,) cm, Δp (N_p,) N/cm², 0 at held
-        patches) on every rank."""
+        force residual ``r`` (3n,) N of this rank's nodes and the pressure residual ``rp`` of its own
+        patches as the two blocks, one KSP solve stopped on the mixed residual; returns (Δd (3n,) cm,
+        Δp of its own patches, N/cm², 0 at held patches)."""
         if self._mixed is None:
             return self.solve(r, rtol), None
         t0 = time.perf_counter()
@@ -574,25 +577,23 @@ class PETScMixedSolver(PETScSolver):
         rtol = self.rtol if rtol is None else max(float(rtol), 1e-14)
         mx = self._mixed
         b, z = mx["b"], mx["z"]
-        patches, _, mine = self._press
+        mine, sel, _, _ = self._press
+        w = self._space.weight
         barr = b.getArray()
-        barr[mx["u"]] = np.asarray(r, float).ravel()[self.dof[self.lo:self.hi]]
-        barr[mx["p"]] = self._space.scaled_rhs(rp, mine)
+        barr[mx["u"]] = np.asarray(r, float).ravel()
+        barr[mx["p"]] = -w * np.asarray(rp, float)[sel]
         b.setArray(barr)
         its, status, stale = self._ksp_solve(rtol)
         zarr = z.getArray()
-        x = np.zeros(np.asarray(r).size)
-        x[self.dof] = self._gathered(zarr[mx["u"]])
-        xp, pgather, pall = self._pgather
-        xp.setArray(zarr[mx["p"]])
-        pgather.scatter(xp, pall, addv=False, mode=self.PETSc.ScatterMode.FORWARD)
-        dp = self._space.update(pall.getArray(), patches)
+        x = zarr[mx["u"]].copy()
+        dp = np.zeros(sel.size)
+        dp[sel] = w * zarr[mx["p"]] / self._space.volume[mine]
         self._close(t0, setup0, its, rtol)
         if status != "converged":
             raise self._failed(status, its, rtol)
         if not stale:
             self.policy.account(its, rtol)
-        return x, dp
+        return x.reshape(np.shape(r)), dp
 
     def statistics(self) -> dict:
         """As ``petsc``, plus ``refinements`` (mixed re-solves for the condensed residual, all solves)
@@ -602,14 +603,10 @@ class PETScMixedSolver(PETScSolver):
 
 
 class _OwnedRows:
-    """A petsc4py ``python`` Mat context: this rank's rows of a replicated matrix-free operator
-    (``op @ v`` on the whole vector, gathered to every rank)."""
+    """A petsc4py ``python`` Mat context: this rank's rows of its held system's matrix-free operator."""
 
     def __init__(self, solver: PETScMixedSolver, op):
         self.s, self.op = solver, op
 
     def mult(self, mat, x, y) -> None:
-        s = self.s
-        v = np.empty(s.dof.size)
-        v[s.dof] = s._gathered(x.getArray(readonly=True))
-        y.setArray((self.op @ v)[s.dof[s.lo:s.hi]])
+        y.setArray(self.s._owned_product(self.op, x.getArray(readonly=True)))

@@ -1,0 +1,118 @@
+"""Which rank owns which node, and which nodes a rank must hold to compute its own rows exactly.
+
+:func:`bisection_partition` cuts the nodes by recursive coordinate bisection on the voxel grid:
+each cut is a plane across the axis with the most voxels, placed so that the two sides get node
+counts in proportion to the ranks they go to. The cuts are not limited to whole slices, so any
+number of ranks up to the number of nodes can be used, and the cut faces stay small (a leg of
+120 × 120 voxels in-plane and 50 slices is cut in-plane first).
+
+:func:`halo` gives the nodes within a box of voxels around a rank's own nodes (Chebyshev distance
+per axis on the voxel grid, by dilation of the grid's occupancy): the nodes whose data a rank needs
+to evaluate its rows; :func:`halo_depth` is that depth for the pixel-point model.
+
+References
+----------
+Berger, M. J. & Bokhari, S. H. (1987). A partitioning strategy for nonuniform problems on
+multiprocessors. IEEE Transactions on Computers C-36(5), 570–580.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+
+def halo_depth(a_over_h, patch=(1, 1, 1), enlarged: float = 1.0) -> np.ndarray:
+    """Voxels (i, j, k) of halo around a rank's nodes for the exact rows of its nodes.
+
+    With supports of s = a/h · ``enlarged`` voxels per axis (the largest RK support of the model,
+    nominal times its largest enlargement beside thin features), the integration points of a cell
+    lie half a voxel from its centre, so the cells that couple to an owned node lie within
+    c = ⌈s + ½⌉ − 1 voxels of it; the volumetric patches (``patch`` voxels, 2 × 2 × 3 by default)
+    of those cells reach patch − 1 voxels further; the shape functions at their points take the
+    nodes c voxels further again: 2c + patch − 1 (nominal a/h = 1.65: (5, 5, 6)).
+    """
+    s = np.broadcast_to(np.asarray(a_over_h, float), (3,)) * float(enlarged)
+    c = np.ceil(s + 0.5 - 1e-9).astype(np.int64) - 1
+    return 2 * c + np.broadcast_to(np.asarray(patch, np.int64), (3,)) - 1
+
+
+def cover_margin(a_over_h, enlarged: float = 1.0) -> np.ndarray:
+    """Voxels beyond :func:`halo_depth` whose nodes take part in the support coverage, so that the
+    supports of the halo's nodes are those of the whole model: :func:`pixmuscle.rk.covering_supports`
+    enlarges the nodes within 2 nominal supports of a singular point, whose singularity depends on
+    the nodes within one (enlarged) support of it."""
+    a = np.broadcast_to(np.asarray(a_over_h, float), (3,))
+    return np.ceil(2.0 * a + a * float(enlarged)).astype(np.int64) + 1
+
+
+def bisection_partition(ijk: np.ndarray, parts: int) -> np.ndarray:
+    """Rank of every node by recursive coordinate bisection on the voxel grid.
+
+    Parameters
+    ----------
+    ijk : (N, 3) int
+        Voxel indices of the nodes.
+    parts : int
+        Number of ranks, 1 ≤ parts ≤ N.
+
+    Returns
+    -------
+    rank : (N,) int64
+        0 … parts − 1; the node counts per rank differ by at most the nodes of one grid plane
+        per cut (a cut never splits a plane of voxels across the cut axis).
+    """
+    ijk = np.asarray(ijk, np.int64)
+    n = ijk.shape[0]
+    if not 1 <= parts <= max(n, 1):
+        raise ValueError(f"cannot cut {n} nodes into {parts} parts")
+    rank = np.zeros(n, np.int64)
+    work = [(np.arange(n), 0, parts)]
+    while work:
+        idx, first, count = work.pop()
+        if count == 1:
+            rank[idx] = first
+            continue
+        pts = ijk[idx]
+        extent = pts.max(axis=0) - pts.min(axis=0)
+        axis = int(np.argmax(extent))
+        left = count // 2
+        order = np.argsort(pts[:, axis], kind="stable")
+        keys = pts[order, axis]
+        want = (idx.size * left) // count
+        # the plane boundary nearest to the wanted count (whole planes stay on one side)
+        lo = np.searchsorted(keys, keys[max(want - 1, 0)], side="right")
+        hi = np.searchsorted(keys, keys[min(want, idx.size - 1)], side="left")
+        cut = lo if abs(lo - want) <= abs(hi - want) else hi
+        cut = min(max(cut, 1), idx.size - 1)
+        work.append((idx[order[:cut]], first, left))
+        work.append((idx[order[cut:]], first + left, count - left))
+    return rank
+
+
+def halo(ijk: np.ndarray, inner: np.ndarray, depth) -> np.ndarray:
+    """Nodes within ``depth`` voxels (per axis) of the nodes ``inner``.
+
+    Parameters
+    ----------
+    ijk : (N, 3) int
+        Voxel indices of all nodes.
+    inner : (N,) bool
+        The nodes to grow from.
+    depth : int or (3,) int
+        Voxels per axis.
+
+    Returns
+    -------
+    (N,) bool
+        ``inner`` and every node whose voxel lies in the box of ``depth`` voxels around one of them.
+    """
+    ijk = np.asarray(ijk, np.int64)
+    depth = np.broadcast_to(np.asarray(depth, np.int64), (3,))
+    lo = ijk.min(axis=0)
+    shape = tuple(ijk.max(axis=0) - lo + 1)
+    grid = np.zeros(shape, bool)
+    at = tuple((ijk[inner] - lo).T)
+    grid[at] = True
+    grown = ndimage.maximum_filter(grid, size=tuple(2 * depth + 1), mode="constant", cval=False)
+    return grown[tuple((ijk - lo).T)]

@@ -1,0 +1,196 @@
+"""The distributed system: the partition, the exactness of a rank's rows built from its nodes plus
+halo, and real ``mpiexec -n 2`` / ``-n 3`` solves (the serial forces, no rank holding the whole
+model, resume after a killed rank, every rank ending when one is killed). The mpiexec tests are
+skipped, with the reason, without petsc4py or mpiexec."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+from test_petsc import SWEEP, _body, _env, _mpiexec
+
+from pixmuscle.config import parse_section
+from pixmuscle.io.checkpoint import checkpoint_path, load_checkpoint
+from pixmuscle.io.model import save_model
+from pixmuscle.io.results import load_results
+from pixmuscle.mechanics.config import SolveConfig
+from pixmuscle.mechanics.distributed import bisection_partition, halo, halo_depth
+from pixmuscle.mechanics.distributed.system import held_part, held_system
+from pixmuscle.mechanics.solve import build_system, solve
+
+SLICES = 32  # long enough that a rank's halo is not the whole body
+STEPS = 6
+
+
+def test_bisection_cuts_the_longest_axis_into_balanced_parts_of_any_count():
+    ijk = np.indices((30, 12, 6)).reshape(3, -1).T
+    for parts in (2, 3, 5):
+        rank = bisection_partition(ijk, parts)
+        counts = np.bincount(rank, minlength=parts)
+        assert counts.min() > 0 and counts.max() - counts.min() <= 12 * 6  # at most one grid plane apart
+    rank = bisection_partition(ijk, 2)
+    assert np.ptp(ijk[rank == 0, 0]) < 29 and np.ptp(ijk[rank == 0, 2]) == 5  # cut across i (30 voxels), not k
+    rank = bisection_partition(np.indices((12, 12, 4)).reshape(3, -1).T, 4)
+    assert np.unique(rank).size == 4  # more ranks than slices would allow whole-slice slabs of 2
+
+
+def test_halo_depth_and_halo():
+    assert halo_depth(1.65, (2, 2, 3)).tolist() == [5, 5, 6]  # cells 2 voxels away, their patches, their nodes
+    assert halo_depth(1.65, (1, 1, 1)).tolist() == [4, 4, 4]
+    assert halo_depth(1.65, (2, 2, 3), enlarged=1.56).tolist() == [7, 7, 8]
+    ijk = np.indices((10, 1, 1)).reshape(3, -1).T
+    inner = np.zeros(10, bool)
+    inner[0] = True
+    assert np.flatnonzero(halo(ijk, inner, (2, 0, 0))).tolist() == [0, 1, 2]
+
+
+@pytest.mark.parametrize("parts", [2, 3, 4])
+def test_a_ranks_rows_from_its_nodes_plus_halo_are_the_whole_systems(parts):
+    """For every rank of a P-way cut: the residual and the tangent product at its own nodes, computed
+    from the system of its held nodes alone (with the model's supports and β), equal the whole
+    system's to round-off (penalty, NSNI, projected patches and enlarged supports beside the strand
+    included), and it holds fewer nodes than the model."""
+    model = _body(SLICES)
+    cfg = parse_section(SolveConfig, SWEEP, "solve")
+    whole, _ = build_system(model, cfg)
+    rng = np.random.default_rng(1)
+    d = 0.01 * rng.standard_normal((model.n_nodes, 3))
+    state = whole.evaluate(d, 0.5, 0.6)
+    v = rng.standard_normal((model.n_nodes, 3))
+    Kv = (whole.tangent_operator(state) @ v.ravel()).reshape(-1, 3)
+    part = bisection_partition(model.ijk, parts)
+    for rank in range(parts):
+        owned = part == rank
+        held, sup, largest = held_part(model, cfg, owned)
+        held, sup, _ = held_part(model, cfg, owned, largest)  # the depth of the model's largest support
+        assert held.size < model.n_nodes
+        np.testing.assert_array_equal(sup, whole.scni.support[held])
+        system, _ = held_system(model, cfg, held, sup, whole.constraints.beta)
+        st = system.evaluate(d[held], 0.5, 0.6)
+        own = np.flatnonzero(owned[held])
+        assert np.abs(st.r[own] - state.r[held[own]]).max() <= 1e-12 * np.abs(state.r).max()
+        y = (system.tangent_operator(st) @ v[held].ravel()).reshape(-1, 3)[own]
+        assert np.abs(y - Kv[held[own]]).max() <= 1e-12 * np.abs(Kv).max()
+
+
+@pytest.fixture(scope="module")
+def leg(tmp_path_factory):
+    """The model, configs of 1-, 3- and 6-step sweeps with petsc_mixed (``c<steps>.yaml``), and the
+    serial default solves of the 1- and 3-step ones."""
+    tmp = tmp_path_factory.mktemp("dist")
+    model = _body(SLICES)
+    save_model(tmp / "model.h5", model)
+    solver = {"backend": "petsc_mixed", "rtol": 1e-12}
+    refs = {}
+    for steps in (1, 3, STEPS):
+        (tmp / f"c{steps}.yaml").write_text(yaml.safe_dump({"solve": dict(SWEEP, steps=steps, solver=solver)}))
+        if steps < STEPS:
+            refs[steps] = solve(model, parse_section(SolveConfig, dict(SWEEP, steps=steps), "solve"))
+            assert refs[steps].status == "complete"
+    return tmp, model, refs
+
+
+def _cmd(launcher, ranks: int, tmp: Path, out: Path, config: str) -> list[str]:
+    return launcher + ["-n", str(ranks), sys.executable, "-m", "pixmuscle.cli", "solve", str(tmp / "model.h5"),
+                       "--config", str(tmp / config), "-o", str(out)]
+
+
+@pytest.mark.parametrize("ranks, steps", [(2, 3), (3, 1)])
+def test_mpiexec_distributed_solve_gives_the_serial_forces(leg, ranks, steps):
+    """``mpiexec -n P pixmuscle solve`` with petsc_mixed on the distributed system: forces of every
+    step equal the serial default solver's to 1e-6 (measured ~1e-13), displacements to 1e-6 of the
+    largest; rank 0 held fewer than all nodes; one results file. (Three ranks on two cores wait for
+    each other at every collective, 20× slower than two: one load step, α 0 → 0.95, for them.)"""
+    launcher = _mpiexec()
+    tmp, model, refs = leg
+    ref = refs[steps]
+    out = tmp / f"n{ranks}.h5"
+    proc = subprocess.run(_cmd(launcher, ranks, tmp, out, f"c{steps}.yaml"), capture_output=True, text=True, env=_env(), timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = load_results(out, lazy=False)
+    assert res.status == "complete" and res.info["ranks"] == ranks
+    assert res.info["owned_nodes"] < res.info["held_nodes"] < model.n_nodes
+    for name in ref.reaction:
+        f, f_ref = np.asarray(res.reaction[name]), np.asarray(ref.reaction[name])
+        assert np.abs(f - f_ref).max() <= 1e-6 * np.abs(f_ref).max(), name
+    assert np.abs(np.asarray(res.u) - np.asarray(ref.u)).max() <= 1e-6 * np.abs(np.asarray(ref.u)).max()
+    assert sorted(p.name for p in tmp.iterdir() if p.name.startswith(f"n{ranks}")) == [out.name]
+
+
+def _rank_pids(parent: int) -> dict[int, int]:
+    """Rank → PID of the processes that ``mpiexec`` (PID ``parent``) started (from their environment)."""
+    out = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            env = (entry / "environ").read_bytes().split(b"\0")
+            ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid != parent:
+            continue
+        for item in env:
+            if item.startswith(b"OMPI_COMM_WORLD_RANK="):
+                out[int(item.split(b"=")[1])] = int(entry.name)
+    return out
+
+
+def test_mpiexec_killed_rank_ends_every_rank_and_the_same_command_resumes(leg):
+    """A rank killed (SIGKILL) after step 2 of a ``mpiexec -n 2`` solve: mpiexec and the other rank end
+    within seconds, non-zero, with a line naming the killed rank; the checkpoint that rank 0 wrote
+    holds the converged steps; the same command resumes from it and gives every step's forces of the
+    uninterrupted ``-n 2`` run to 1e-8."""
+    launcher = _mpiexec()
+    if not Path("/proc/self/environ").exists():
+        pytest.skip("needs /proc to find the ranks' processes")
+    tmp, _, _ = leg
+    full = tmp / "full2.h5"
+    proc = subprocess.run(_cmd(launcher, 2, tmp, full, f"c{STEPS}.yaml"), capture_output=True, text=True, env=_env(), timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out, ckpt = tmp / "killed.h5", checkpoint_path(tmp / "killed.h5")
+    cmd = _cmd(launcher, 2, tmp, out, f"c{STEPS}.yaml")
+    run = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=_env())
+    try:
+        done, deadline = 0, time.monotonic() + 240
+        while done < 3 and run.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+            try:
+                with h5py.File(ckpt, "r") as f:
+                    done = int(f.attrs["converged_steps"])
+            except (OSError, KeyError):
+                pass
+        assert run.poll() is None, "the solve ended before it could be killed"
+        pids = _rank_pids(run.pid)
+        assert sorted(pids) == [0, 1], pids
+        os.kill(pids[1], signal.SIGKILL)
+        t0 = time.monotonic()
+        _, err = run.communicate(timeout=60)
+        ended = time.monotonic() - t0
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.wait()
+    assert run.returncode != 0 and ended < 30
+    assert any("rank 1" in line and "signal 9" in line for line in err.splitlines()), err[-2000:]
+    assert not _rank_pids(run.pid)  # no rank left behind
+    assert not out.exists() and ckpt.exists()
+    k = load_checkpoint(ckpt).records[-1].step
+    assert 2 <= k < STEPS
+
+    again = subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=300)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert f"resuming from load step {k} of {STEPS}" in again.stderr
+    assert not ckpt.exists()
+    res, ref = load_results(out, lazy=False), load_results(full, lazy=False)
+    assert res.status == "complete" and res.info["resumed_after_step"] == k
+    for name in ref.reaction:
+        f, f_ref = np.asarray(res.reaction[name]), np.asarray(ref.reaction[name])
+        assert np.abs(f - f_ref).max() <= 1e-8 * np.abs(f_ref).max(), name
