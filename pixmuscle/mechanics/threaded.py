@@ -15,8 +15,8 @@ Each output row is summed in the same order whatever the number of threads, so p
 depend on it, bit for bit. The blocks share the matrix's arrays (no copy).
 
 Threads: numba's (:func:`numba.get_num_threads`: all cores, or ``NUMBA_NUM_THREADS``, which the
-Dask runner sets to the cores of a worker); the pool divides them among the processes of an MPI
-launch.
+Dask runner sets to the cores of a worker and :func:`pixmuscle.parallel.share_cores` to a process's
+share of the cores under ``mpiexec``).
 """
 
 from __future__ import annotations
@@ -28,8 +28,6 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 
-from ..parallel import launched_size
-
 #: below this many non-zeros a product runs on the calling thread (a pool hand-off costs ~50 µs)
 MIN_NNZ = 200_000
 
@@ -37,8 +35,8 @@ _POOL: dict[int, ThreadPoolExecutor] = {}
 
 
 def thread_count() -> int:
-    """Threads of a product: numba's thread count over the processes of an MPI launch, at least 1."""
-    return max(1, numba.get_num_threads() // launched_size())
+    """Threads of a product: numba's thread count (under ``mpiexec`` the process's share of the cores)."""
+    return max(1, numba.get_num_threads())
 
 
 def _pool(n: int) -> ThreadPoolExecutor:
