@@ -69,6 +69,9 @@ bench-scale: $(STAMP)
 	$(BIN)/python benchmarks/bench_solve.py --append --cases 295k:auto_rebuild100 --checkpoint .bench-checkpoints
 	$(BIN)/python benchmarks/bench_solve.py --probe-direct 75k
 	$(BIN)/python benchmarks/bench_memory.py 75k
+	$(BIN)/python benchmarks/bench_backends.py
+	$(BIN)/python benchmarks/bench_scaling.py --solve-record --cases 37k:1 75k:2 295k:2 150k:4
+	$(BIN)/python benchmarks/bench_scaling.py --model
 	$(BIN)/python benchmarks/fit_time_estimate.py
 	$(BIN)/python benchmarks/docs_tables.py
 

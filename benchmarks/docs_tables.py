@@ -352,21 +352,56 @@ def backends() -> str:
     from pixmuscle.preflight import estimate_solve
 
     lines = ["| backend | ranks | wall | peak per rank (largest) | all ranks | Newton its | Krylov its | builds | F_max | "
-             "today's estimate (`preflight.estimate_solve`) |", "|---|---|---|---|---|---|---|---|---|---|"]
-    for c in r["cases"]:
+             "today's estimate (`preflight.estimate_solve`) | made at |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for c in sorted(r["cases"], key=lambda c: (c["backend"] != "mixed_amg", c["backend"], c["ranks"])):
         if c.get("exit"):
-            lines.append(f"| `{c['backend']}` | {c['ranks']} | failed (exit {c['exit']}) | | | | | | | |")
+            lines.append(f"| `{c['backend']}` | {c['ranks']} | failed (exit {c['exit']}) | | | | | | | | |")
             continue
         lines.append(f"| `{c['backend']}` | {c['ranks']} | {c['wall_s']:.0f} s | {c['peak_rss_GB_per_rank_max']:.2f} GB | "
                      f"{c['peak_rss_GB']:.2f} GB | {c['newton_iterations']} | {c['krylov_iterations'] or '—'} | "
                      f"{c['preconditioner_builds'] or '—'} | {c['force_z_max_N']:.4f} N | "
-                     f"{estimate_solve(c['nodes'], c['steps'])[0]:.0f} s |")
+                     f"{estimate_solve(c['nodes'], c['steps'])[0]:.0f} s | {_made(c)} |")
     c0 = r["cases"][0]
     loads = [c["load_average"]["before"][0] for c in r["cases"] if "load_average" in c]
     lines += ["", f"Model `{r['model']}` ({c0.get('nodes', 0):,} nodes, the fine model of `configs/lower_leg_small.yaml`), "
                   f"{c0['steps']} load steps to α = 0.95. Record `{path}`, made by `.venv/bin/python "
-                  f"benchmarks/bench_backends.py` at {_made(c0)} ({c0['utc'][:10]}, load average "
+                  f"benchmarks/bench_backends.py --cases BACKEND:RANKS` (load average "
                   f"{min(loads):.1f}–{max(loads):.1f} at the cases' starts)."]
+    return "\n".join(lines)
+
+
+def scaling() -> str:
+    """The distributed solve under mpiexec: weak scaling and the refined leg on two ranks (bench_weak_scaling.json)."""
+    path = "benchmarks/results/bench_weak_scaling.json"
+    if not (ROOT / path).exists():
+        return "No record yet: `.venv/bin/python benchmarks/bench_scaling.py`."
+    r = _load(path)
+    lines = ["| model | ranks | nodes | per rank | held by rank 0 | peak per rank (largest) | all ranks | Krylov its per "
+             "Newton system (mean, max) | Newton its | sweep | F_z(z_max) at α = 0.95 | load avg before → after | made at |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    order = {"37k": 0, "75k": 1, "150k": 2, "295k": 3}
+    for c in sorted(r["cases"], key=lambda c: (order.get(c["size"], 9), c["ranks"])):
+        if c.get("exit"):
+            lines.append(f"| `{c['size']}` | {c['ranks']} | failed (exit {c['exit']}) | | | | | | | | | | |")
+            continue
+        its = c["krylov_iterations_per_system"]
+        wall = _minutes(c["wall_s"]) + (" (oversubscribed)" if c["ranks"] > c["machine"]["cpus"] else "")
+        resumed = f", resumed after step {c['resumed_after_step']}" if c.get("resumed_after_step") is not None else ""
+        lines.append(f"| `{c['size']}` | {c['ranks']} | {c['nodes']:,} | {c['nodes'] // c['ranks']:,} | "
+                     f"{c['held_nodes_rank0'] or c['nodes']:,} | **{c['peak_rss_GB_per_rank_max']:.2f} GB** | "
+                     f"{c['peak_rss_GB']:.2f} GB | {sum(its) / max(len(its), 1):.1f}, {max(its, default=0)} | "
+                     f"{sum(c['newton_iterations_per_step'])} | {wall}{resumed} | {c['force_z_max_N'][-1]:.3f} N | "
+                     f"{_load_text(c)} | {_made(c)} |")
+    lines += ["", f"Record `{path}`; each row's command is in it, e.g. `.venv/bin/python benchmarks/bench_scaling.py "
+                  "--cases 75k:2`. `petsc_mixed` through `mpiexec -n P pixmuscle solve`, every other setting at its "
+                  "default; α 0 → 0.95 in 10 load steps; peak per rank: each rank's own `RUSAGE_SELF` at its exit."]
+    model = r.get("memory_model")
+    if model:
+        lines += ["", f"Memory model (least squares over the rows above): peak per rank ≈ {model['base_GB']:.2f} GB + "
+                      f"{model['kB_per_held_node']:.1f} kB × the nodes the rank holds. "
+                      + " ".join(f"A {p['nodes']:,}-node leg ({p['what']}) on {p['ranks']} ranks: each rank holds up "
+                                 f"to {p['held_max']:,} nodes, so ≈ {p['GB_per_rank']:.1f} GB per rank."
+                                 for p in model.get("predictions", []))]
     return "\n".join(lines)
 
 
@@ -377,7 +412,7 @@ TABLES = {"sweeps": sweeps, "sweeps-other": sweeps_other, "first-system": first_
           "example2-elliptic": lambda: example2("lower_leg_elliptic"),
           "example3-small": lambda: example3("mg_young_old_small"),
           "example3-candidates": example3_candidates, "example3-uncertainty": example3_uncertainty,
-          "memory-change": memory_change, "backends": backends}
+          "memory-change": memory_change, "backends": backends, "scaling": scaling}
 
 
 def render(text: str) -> str:

@@ -41,7 +41,8 @@ dataclass (:mod:`.base`); the package imports its modules when it loads, the con
     Without a projected energy it runs CG as ``cg_amg``.
 ``petsc``
     PETSc (optional petsc4py) on one or several MPI ranks (``mpiexec -n P pixmuscle solve …``):
-    each rank assembles the tangent rows of a slab of slices into a distributed AIJ matrix,
+    each rank holds its part of the model plus a halo (:mod:`..distributed`) and assembles the
+    tangent rows of its own nodes into a distributed AIJ matrix,
     solved by KSP GMRES + GAMG with the rigid-body near-null space by default;
     ``solve.solver.petsc_options`` go to PETSc's options database (:mod:`.petsc`, docs/petsc.md).
 ``petsc_mixed``
