@@ -91,20 +91,19 @@ class Layout:
         """Σ over the ranks of a number or array (every rank gets it)."""
         from mpi4py import MPI
 
-        if np.isscalar(value):
-            return self.mpi.allreduce(value, op=MPI.SUM)
-        out = np.empty_like(np.asarray(value, float))
-        self.mpi.Allreduce(np.ascontiguousarray(value, float), out, op=MPI.SUM)
-        return out
+        return self._reduce(value, MPI.SUM)
 
     def max(self, value):
         """Largest over the ranks of a number or array (every rank gets it)."""
         from mpi4py import MPI
 
+        return self._reduce(value, MPI.MAX)
+
+    def _reduce(self, value, op):
         if np.isscalar(value):
-            return self.mpi.allreduce(value, op=MPI.MAX)
+            return self.mpi.allreduce(value, op=op)
         out = np.empty_like(np.asarray(value, float))
-        self.mpi.Allreduce(np.ascontiguousarray(value, float), out, op=MPI.MAX)
+        self.mpi.Allreduce(np.ascontiguousarray(value, float), out, op=op)
         return out
 
 
