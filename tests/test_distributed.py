@@ -21,7 +21,7 @@ from pixmuscle.io.checkpoint import checkpoint_path, load_checkpoint
 from pixmuscle.io.model import save_model
 from pixmuscle.io.results import load_results
 from pixmuscle.mechanics.config import SolveConfig
-from pixmuscle.mechanics.distributed import bisection_partition, halo, halo_depth
+from pixmuscle.mechanics.distributed import bisection_partition, cell_depth, halo, halo_depth
 from pixmuscle.mechanics.distributed.system import held_part, held_system
 from pixmuscle.mechanics.solve import build_system, solve
 
@@ -41,10 +41,28 @@ def test_bisection_cuts_the_longest_axis_into_balanced_parts_of_any_count():
     assert np.unique(rank).size == 4  # more ranks than slices would allow whole-slice slabs of 2
 
 
+def test_points_without_a_regular_moment_matrix_can_be_left_empty():
+    """``singular="empty"`` (the cut edge of a rank's part): a point with too few nodes gets an empty
+    row, the others the shape functions they get alone (which still reproduce linear fields)."""
+    from pixmuscle.rk import shape_functions
+
+    nodes = np.indices((4, 4, 4)).reshape(3, -1).T.astype(float)
+    good = np.array([[1.5, 1.5, 1.5], [2.0, 1.0, 1.5]])
+    lonely = np.array([[9.0, 9.0, 9.0]])  # no node in its support
+    with pytest.raises(Exception, match="singular"):
+        shape_functions(nodes, np.vstack([good, lonely]), 1.65)
+    psi, dpsi = shape_functions(nodes, np.vstack([good, lonely]), 1.65, gradient=True, singular="empty")
+    ref, dref = shape_functions(nodes, good, 1.65, gradient=True)
+    assert psi[2].nnz == 0 and all(g[2].nnz == 0 for g in dpsi)
+    assert abs(psi[:2] - ref).max() == 0.0 and all(abs(g[:2] - r).max() == 0.0 for g, r in zip(dpsi, dref, strict=True))
+    np.testing.assert_allclose(psi[:2] @ nodes, good, atol=1e-12)
+
+
 def test_halo_depth_and_halo():
     assert halo_depth(1.65, (2, 2, 3)).tolist() == [5, 5, 6]  # cells 2 voxels away, their patches, their nodes
     assert halo_depth(1.65, (1, 1, 1)).tolist() == [4, 4, 4]
     assert halo_depth(1.65, (2, 2, 3), enlarged=1.56).tolist() == [7, 7, 8]
+    assert cell_depth(1.65, (2, 2, 3)).tolist() == [3, 3, 4]
     ijk = np.indices((10, 1, 1)).reshape(3, -1).T
     inner = np.zeros(10, bool)
     inner[0] = True
@@ -72,7 +90,8 @@ def test_a_ranks_rows_from_its_nodes_plus_halo_are_the_whole_systems(parts):
         held, sup, _ = held_part(model, cfg, owned, largest)  # the depth of the model's largest support
         assert held.size < model.n_nodes
         np.testing.assert_array_equal(sup, whole.scni.support[held])
-        system, _ = held_system(model, cfg, held, sup, whole.constraints.beta)
+        system, _ = held_system(model, cfg, held, sup, whole.constraints.beta, owned[held], largest)
+        assert 0 < np.count_nonzero(system.inert) < held.size - np.count_nonzero(owned)
         st = system.evaluate(d[held], 0.5, 0.6)
         own = np.flatnonzero(owned[held])
         assert np.abs(st.r[own] - state.r[held[own]]).max() <= 1e-12 * np.abs(state.r).max()

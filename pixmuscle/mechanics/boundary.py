@@ -483,12 +483,12 @@ def constraint_points(model, bcs: list[BoundaryCondition], faces: Faces, *, at: 
 
 
 def build_constraints(model, bcs: list[BoundaryCondition], faces: Faces, support, beta: float, *, kernel="cubic",
-                      order=1, support_shape="box", at: str = "auto") -> Constraints:
+                      order=1, support_shape="box", at: str = "auto", singular: str = "raise") -> Constraints:
     """Constraint points with their shape functions Ψ(x_c) and the penalty number β (N/cm³)."""
     from ..rk import shape_functions
 
     names, pts, node, w, mask, target, group = constraint_points(model, bcs, faces, at=at)
     psi = sp.csr_matrix(shape_functions(np.asarray(model.X, float), pts, support, kernel=kernel, order=order,
-                                        support_shape=support_shape)) if len(pts) else sp.csr_matrix((0, model.X.shape[0]))
+                                        support_shape=support_shape, singular=singular)) if len(pts) else sp.csr_matrix((0, model.X.shape[0]))
     return Constraints(names=names, points=pts, node=node, weight=w, mask=mask, target=target, group=group, psi=psi,
                        beta=float(beta))

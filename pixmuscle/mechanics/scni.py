@@ -443,7 +443,7 @@ def support_radius(spacing, a_over_h) -> np.ndarray:
 
 
 def build_scni(X, ijk, spacing, support, *, kernel="cubic", order=1, support_shape="box", face_gradients=False,
-               vertex_faces=None, faces: Faces | None = None) -> SCNI:
+               vertex_faces=None, faces: Faces | None = None, singular: str = "raise") -> SCNI:
     """Build the SCNI operators of a pixel-point model.
 
     Parameters
@@ -466,6 +466,9 @@ def build_scni(X, ijk, spacing, support, *, kernel="cubic", order=1, support_sha
         their vertices (:func:`pixmuscle.mechanics.boundary.vertex_rule_faces`).
     faces : Faces, optional
         ``cell_faces(X, ijk, spacing)`` when already built (``vertex_faces`` index into it).
+    singular : {"raise", "empty"}
+        Face points with a singular moment matrix: an error, or rows without entries
+        (:func:`pixmuscle.rk.shape_functions`; a rank's cells beyond its exact zone).
 
     Returns
     -------
@@ -478,7 +481,7 @@ def build_scni(X, ijk, spacing, support, *, kernel="cubic", order=1, support_sha
     if faces is None:
         faces = cell_faces(X, ijk, h)
     volume = np.full(X.shape[0], float(np.prod(h)))
-    kw = dict(kernel=kernel, order=order, support_shape=support_shape, gradient=face_gradients)
+    kw = dict(kernel=kernel, order=order, support_shape=support_shape, gradient=face_gradients, singular=singular)
     res = shape_functions(X, faces.centre, support, **kw)
     psi, dpsi = (res[0], list(res[1])) if face_gradients else (res, None)
     vf = np.unique(np.asarray([] if vertex_faces is None else vertex_faces, np.int64))

@@ -236,8 +236,11 @@ class MechanicalSystem:
         #: the rows (node indices) whose forces make the force scale: None, all; a rank's own nodes
         #: in a distributed system (:mod:`.distributed`), whose other rows are its halo's
         self.counted = None
-        #: keywords of the RK shape functions (kernel, order, support_shape), for the nodal values
+        #: keywords of the RK shape functions (kernel, order, support_shape, singular), for the nodal values
         self.rk_kw = {}
+        #: (N,) bool or None: cells whose deformation gradient is taken as I (a rank's cells beyond the
+        #: integration cells its own rows need, where the cut edge can leave F meaningless)
+        self.inert = None
         self._psi_nodes = None
         self.timings = {"material_s": 0.0, "assembly_s": 0.0, "n_evaluate": 0, "n_assembly": 0}
 
@@ -369,6 +372,8 @@ class MechanicalSystem:
         place of K̄_p (θ_p − 1); the residual, energy and stresses keep the pressure of d."""
         t0 = time.perf_counter()
         F = self.scni.deformation_gradient(d)
+        if self.inert is not None:
+            F[self.inert] = np.eye(3)
         P, A = self.material_response(F, alpha, tangent=True)
         vs = None
         if self.volumetric is not None:
@@ -720,12 +725,14 @@ def check_model(model: Model) -> None:
 
 
 def build_system(model: Model, cfg: SolveConfig, *, supports: np.ndarray | None = None, beta: float | None = None,
-                 n_total: int | None = None) -> tuple[MechanicalSystem, dict]:
+                 n_total: int | None = None, singular: str = "raise") -> tuple[MechanicalSystem, dict]:
     """Assemble everything that does not change during the solve.
 
-    ``supports`` (N, 3) cm, ``beta`` N/cm³ and ``n_total`` are given by a distributed build
-    (:mod:`.distributed`), whose ``model`` is one rank's part: the RK supports and penalty number of
-    the whole model and its node count (the residual floor); by default they come from ``model``.
+    ``supports`` (N, 3) cm, ``beta`` N/cm³, ``n_total`` and ``singular`` are given by a distributed
+    build (:mod:`.distributed`), whose ``model`` is one rank's part: the RK supports and penalty
+    number of the whole model, its node count (the residual floor), and ``"empty"`` for the points
+    at the part's cut edge whose moment matrices are singular there (:func:`pixmuscle.rk.shape_functions`);
+    by default they come from ``model`` and a singular point is an error.
 
     Returns
     -------
@@ -737,9 +744,9 @@ def build_system(model: Model, cfg: SolveConfig, *, supports: np.ndarray | None 
     info = {}
     t0 = time.perf_counter()
     stab = cfg.stabilization.method != "none" and cfg.stabilization.coefficient > 0
-    rk_kw = dict(kernel=cfg.support.kernel, order=cfg.support.order, support_shape=cfg.support.shape)
+    rk_kw = dict(kernel=cfg.support.kernel, order=cfg.support.order, support_shape=cfg.support.shape, singular=singular)
     bcs = list(cfg.boundary_conditions)
-    scni, info["supports_enlarged"] = model_scni(model, cfg, face_gradients=stab, supports=supports)
+    scni, info["supports_enlarged"] = model_scni(model, cfg, face_gradients=stab, supports=supports, singular=singular)
     sup = scni.support
     info["scni_s"] = time.perf_counter() - t0
     materials = solve_materials(cfg)
@@ -772,7 +779,7 @@ def build_system(model: Model, cfg: SolveConfig, *, supports: np.ndarray | None 
 
 
 def model_scni(model: Model, cfg: SolveConfig, *, face_gradients: bool = False,
-               supports: np.ndarray | None = None) -> tuple[SCNI, int]:
+               supports: np.ndarray | None = None, singular: str = "raise") -> tuple[SCNI, int]:
     """The SCNI operators of a solve of ``model`` with ``cfg`` (the supports of :func:`node_supports`,
     or ``supports`` (N, 3) cm; end faces held at their vertices by the vertex rule of ``penalty.at``).
 
@@ -791,7 +798,7 @@ def model_scni(model: Model, cfg: SolveConfig, *, face_gradients: bool = False,
     vf = vertex_rule_faces(model, list(cfg.boundary_conditions), faces, at=cfg.penalty.at)
     scni = build_scni(model.X, model.ijk, model.spacing, sup, face_gradients=face_gradients, faces=faces,
                       vertex_faces=vf, kernel=cfg.support.kernel, order=cfg.support.order,
-                      support_shape=cfg.support.shape)
+                      support_shape=cfg.support.shape, singular=singular)
     return scni, n_enlarged
 
 

@@ -49,6 +49,7 @@ def shape_functions(
     support_shape="box",
     gradient=False,
     check_only=False,
+    singular="raise",
 ):
     """RK shape functions Ψ_I(x) (paper eq. 7) and optionally their exact gradients.
 
@@ -75,6 +76,10 @@ def shape_functions(
         Only test the moment matrices of the points (raising as below) and return None: no shape
         function is computed or kept, so the memory is that of one block of points, not of Ψ
         (~22 kB per node for the SCNI points of a leg).
+    singular : {"raise", "empty"}
+        Points whose moment matrix is singular or badly conditioned: ``"raise"`` (below), or
+        ``"empty"``: their rows are left without entries (for points where no value is needed, e.g.
+        at the cut edge of one MPI rank's part of a model).
 
     Returns
     -------
@@ -113,6 +118,8 @@ def shape_functions(
         raise InputError(f"unknown support_shape {support_shape!r}: expected one of {', '.join(SUPPORT_SHAPES)}")
     if isinstance(order, (bool, np.bool_)) or order not in (0, 1, 2):
         raise InputError(f"RK basis order must be 0, 1 or 2, got {order!r}")
+    if singular not in ("raise", "empty"):
+        raise InputError(f"singular must be 'raise' or 'empty', got {singular!r}")
     order = int(order)
 
     n_nodes, dim = nodes.shape
@@ -138,6 +145,7 @@ def shape_functions(
             g0,
             gradient,
             compute=not bad_parts and not check_only,
+            empty_bad=singular == "empty",
         )
         if out["bad"].size:
             bad_parts.append(out["bad"] + start)
@@ -171,8 +179,9 @@ def shape_functions(
     return psi, dpsi
 
 
-def _block(points, nodes, a, per_node, search, kind, support_shape, alphas, g0, gradient, compute):
-    """Shape functions of one block of points (all arrays local to the block)."""
+def _block(points, nodes, a, per_node, search, kind, support_shape, alphas, g0, gradient, compute, empty_bad=False):
+    """Shape functions of one block of points (all arrays local to the block); with ``empty_bad`` the
+    points of singular moment matrices get no entries instead of being reported."""
     n_points = points.shape[0]
     dim = nodes.shape[1]
     rows, cols = search.pairs(points)
@@ -212,8 +221,16 @@ def _block(points, nodes, a, per_node, search, kind, support_shape, alphas, g0, 
         lam = np.linalg.eigvalsh(moment)
     good = lam[:, 0] > RCOND_MIN * lam[:, -1]
     out = {"n_pairs": n_pairs, "bad": np.flatnonzero(~good)}
-    if out["bad"].size or not compute:
+    if (out["bad"].size and not empty_bad) or not compute:
         return out
+    if not good.all():  # empty_bad: their rows go without entries
+        out["bad"] = out["bad"][:0]
+        moment[~good] = np.eye(moment.shape[1])
+        keep = good[rows]
+        rows, cols, phi, h = rows[keep], cols[keep], phi[keep], h[keep]
+        if gradient:
+            dphi = dphi[keep]
+        counts = np.where(good, counts, 0)
 
     minv = np.linalg.inv(moment)
     b = minv[:, :, 0].copy()  # M^{-1} H(0), H(0) = e_0

@@ -8,7 +8,8 @@ number of ranks up to the number of nodes can be used, and the cut faces stay sm
 
 :func:`halo` gives the nodes within a box of voxels around a rank's own nodes (Chebyshev distance
 per axis on the voxel grid, by dilation of the grid's occupancy): the nodes whose data a rank needs
-to evaluate its rows; :func:`halo_depth` is that depth for the pixel-point model.
+to evaluate its rows; :func:`halo_depth` is that depth for the pixel-point model, :func:`cell_depth`
+the depth of the integration cells those rows need.
 
 References
 ----------
@@ -22,19 +23,27 @@ import numpy as np
 from scipy import ndimage
 
 
-def halo_depth(a_over_h, patch=(1, 1, 1), enlarged: float = 1.0) -> np.ndarray:
-    """Voxels (i, j, k) of halo around a rank's nodes for the exact rows of its nodes.
+def cell_depth(a_over_h, patch=(1, 1, 1), enlarged: float = 1.0) -> np.ndarray:
+    """Voxels (i, j, k) around a rank's nodes within which lie the integration cells its rows need.
 
     With supports of s = a/h · ``enlarged`` voxels per axis (the largest RK support of the model,
     nominal times its largest enlargement beside thin features), the integration points of a cell
     lie half a voxel from its centre, so the cells that couple to an owned node lie within
-    c = ⌈s + ½⌉ − 1 voxels of it; the volumetric patches (``patch`` voxels, 2 × 2 × 3 by default)
-    of those cells reach patch − 1 voxels further; the shape functions at their points take the
-    nodes c voxels further again: 2c + patch − 1 (nominal a/h = 1.65: (5, 5, 6)).
+    c = ⌈s + ½⌉ − 1 voxels of it, and the volumetric patches (``patch`` voxels, 2 × 2 × 3 by
+    default) of those cells reach patch − 1 voxels further: c + patch − 1.
     """
     s = np.broadcast_to(np.asarray(a_over_h, float), (3,)) * float(enlarged)
     c = np.ceil(s + 0.5 - 1e-9).astype(np.int64) - 1
-    return 2 * c + np.broadcast_to(np.asarray(patch, np.int64), (3,)) - 1
+    return c + np.broadcast_to(np.asarray(patch, np.int64), (3,)) - 1
+
+
+def halo_depth(a_over_h, patch=(1, 1, 1), enlarged: float = 1.0) -> np.ndarray:
+    """Voxels (i, j, k) of halo around a rank's nodes for the exact rows of its nodes: the cells of
+    :func:`cell_depth` and, c voxels further, the nodes their shape functions take (2c + patch − 1;
+    nominal a/h = 1.65 and 2 × 2 × 3 patches: (5, 5, 6))."""
+    s = np.broadcast_to(np.asarray(a_over_h, float), (3,)) * float(enlarged)
+    c = np.ceil(s + 0.5 - 1e-9).astype(np.int64) - 1
+    return cell_depth(a_over_h, patch, enlarged) + c
 
 
 def cover_margin(a_over_h, enlarged: float = 1.0) -> np.ndarray:

@@ -35,7 +35,7 @@ from ..config import SolveConfig
 from ..scni import support_radius
 from ..system import MechanicalSystem, State, build_system, material_kw, rk_supports, solve_materials
 from .layout import Layout, PatchLayout
-from .partition import bisection_partition, cover_margin, halo, halo_depth
+from .partition import bisection_partition, cell_depth, cover_margin, halo, halo_depth
 
 _LOG = logging.getLogger(__name__)
 
@@ -103,6 +103,7 @@ def build_distributed_system(model: Model, cfg: SolveConfig, comm=None) -> tuple
     largest = mpi.allreduce(largest, op=MPI.MAX)
     if largest > 1.0 + 1e-9:
         held, supports, _ = held_part(model, cfg, owned, largest)
+    largest = max(largest, 1.0)
     counts = np.bincount(part, minlength=size)
     order = np.argsort(part, kind="stable")  # PETSc order: by rank, each rank's nodes in model order
     petsc_of = np.empty(n, np.int64)
@@ -115,13 +116,19 @@ def build_distributed_system(model: Model, cfg: SolveConfig, comm=None) -> tuple
     if enlarged:
         _LOG.warning("RK supports enlarged at %d of %d nodes to cover thin features", enlarged, n)
     beta = global_penalty_number(model, cfg, np.flatnonzero(owned), layout)
-    system, info = held_system(model, cfg, held, supports, beta)
+    system, info = held_system(model, cfg, held, supports, beta, owned[held], largest)
     info.update(n_nodes=n, supports_enlarged=enlarged, ranks=size, owned_nodes=int(own.size), held_nodes=int(held.size))
     n_points = layout.sum(int(np.count_nonzero(owned[held][system.constraints.node])))
     info["n_constraint_points"] = int(n_points)
     if not n_points:
         _LOG.warning("no boundary condition constrains any node: the stiffness is singular")
     return DistributedSystem(system, layout), info
+
+
+def _depths(cfg: SolveConfig, enlarged: float) -> tuple[np.ndarray, np.ndarray]:
+    """(cell depth, halo depth) in voxels for ``cfg``'s supports and patches, supports up to ``enlarged`` × nominal."""
+    patch = cfg.volumetric.patch if cfg.volumetric.method == "projected" else (1, 1, 1)
+    return cell_depth(cfg.support.a_over_h, patch, enlarged), halo_depth(cfg.support.a_over_h, patch, enlarged)
 
 
 def held_part(model: Model, cfg: SolveConfig, owned: np.ndarray, enlarged: float = 1.0) -> tuple[np.ndarray, np.ndarray, float]:
@@ -144,8 +151,7 @@ def held_part(model: Model, cfg: SolveConfig, owned: np.ndarray, enlarged: float
         The largest enlargement among the supports of the covered nodes.
     """
     ijk = np.asarray(model.ijk)
-    patch = cfg.volumetric.patch if cfg.volumetric.method == "projected" else (1, 1, 1)
-    depth = halo_depth(cfg.support.a_over_h, patch, enlarged)
+    depth = _depths(cfg, enlarged)[1]
     held = np.flatnonzero(halo(ijk, owned, depth))
     cover = np.flatnonzero(halo(ijk, owned, depth + cover_margin(cfg.support.a_over_h, enlarged)))
     with _quiet():  # the coverage of this part warns of its own enlargements: the caller counts the whole model's
@@ -154,12 +160,17 @@ def held_part(model: Model, cfg: SolveConfig, owned: np.ndarray, enlarged: float
     return held, sup[np.searchsorted(cover, held)], float(np.max(sup / nominal)) if sup.size else 1.0
 
 
-def held_system(model: Model, cfg: SolveConfig, held: np.ndarray, supports: np.ndarray,
-                beta: float) -> tuple[MechanicalSystem, dict]:
+def held_system(model: Model, cfg: SolveConfig, held: np.ndarray, supports: np.ndarray, beta: float,
+                owned: np.ndarray, enlarged: float = 1.0) -> tuple[MechanicalSystem, dict]:
     """The :class:`..system.MechanicalSystem` of the nodes ``held`` of ``model`` with the whole
-    model's ``supports`` (n_held, 3) cm and penalty number ``beta`` N/cm³."""
+    model's ``supports`` (n_held, 3) cm and penalty number ``beta`` N/cm³, for the rows of its
+    ``owned`` (n_held,) bool nodes: the cells beyond :func:`.partition.cell_depth` of them are
+    inert (F = I), and points at the cut edge with a singular moment matrix get no shape functions."""
+    part = submodel(model, held)
     with _quiet():  # a part without an end set warns that the set is empty: not the whole model's news
-        return build_system(submodel(model, held), cfg, supports=supports, beta=beta, n_total=model.n_nodes)
+        system, info = build_system(part, cfg, supports=supports, beta=beta, n_total=model.n_nodes, singular="empty")
+    system.inert = ~halo(part.ijk, owned, _depths(cfg, enlarged)[0])
+    return system, info
 
 
 class _quiet:
