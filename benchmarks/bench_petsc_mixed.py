@@ -29,31 +29,42 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "benchmarks")]  # the package, test helpers, _record
 
 from _record import Run  # noqa: E402
-from test_mixed_solver import _system  # noqa: E402
+from test_mixed_solver import CLAMPED, _system  # noqa: E402
 
 from pixmuscle.errors import SolverError  # noqa: E402
+from pixmuscle.mechanics.distributed import build_distributed_system  # noqa: E402
 from pixmuscle.mechanics.linsolve import make_solver  # noqa: E402
 from pixmuscle.parallel import import_petsc  # noqa: E402
+from pixmuscle.verify.mechanics import _cfg  # noqa: E402
 
 
 def first_newton(scale: float, beta: float | None, options: dict, region_solves: bool, schur: str) -> str:
     """'iterations (passes)' of the first Newton system (α = 0.6) to 10⁻⁸ of the condensed residual,
-    or the failure; every bulk modulus × ``scale``; ``beta`` None: the default penalty number."""
+    or the failure; every bulk modulus × ``scale``; ``beta`` None: the default penalty number. Under
+    ``mpiexec`` the system is the distributed one (each rank its part plus a halo)."""
     penalty = {} if beta is None else {"penalty": {"at": "nodes", "beta": beta}}
-    model, system = _system(held="patch", muscle={"K": 5000.0 * scale}, connective_tissue={"K": 50000.0 * scale},
-                            **penalty)
+    materials = {"muscle": {"K": 5000.0 * scale}, "connective_tissue": {"K": 50000.0 * scale}}
+    model, system = _system(held="patch", **materials, **penalty)
     state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.5, 0.6)
-    r = state.r.ravel()
+    solved, solved_state = system, state
+    if import_petsc().COMM_WORLD.getSize() > 1:
+        cfg = _cfg(boundary_conditions=CLAMPED, volumetric={"method": "projected", "patch": [2, 2, 3], "held": "patch"},
+                   materials=materials, **penalty)
+        solved = build_distributed_system(model, cfg)[0]
+        solved_state = solved.evaluate(np.zeros((solved.n_nodes, 3)), 0.5, 0.6)
     solver = make_solver("petsc_mixed", model.X, ijk=model.ijk, rtol=1e-10, maxiter=3000, petsc_options=options,
                          region_solves=region_solves, schur=schur)
-    solver.prepare(system, state)
+    solver.prepare(solved, solved_state)
     try:
-        x = solver.solve(r, rtol=1e-8)
+        x = solver.solve(solved_state.r.ravel(), rtol=1e-8)
     except SolverError as exc:
         return "failed: " + str(exc).split("split ")[-1].split(" (condensed")[0]
-    K = system.stiffness(state).tocsc()
-    ref = spla.spsolve(K, r)
-    err = np.linalg.norm(x - ref) / np.linalg.norm(ref)
+    x = solved.gather(x.reshape(-1, 3))  # the whole update on rank 0 (None on the others)
+    if x is None:
+        return ""
+    r = state.r.ravel()
+    ref = spla.spsolve(system.stiffness(state).tocsc(), r)
+    err = np.linalg.norm(x.ravel() - ref) / np.linalg.norm(ref)
     passes = len(solver.info["passes"])
     return f"{solver.info['iterations']} ({passes} pass{'es' if passes > 1 else ''}, error {err:.0e})"
 

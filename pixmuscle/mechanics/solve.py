@@ -239,8 +239,11 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
             inc = None if rec.increment is None else (system.owned_of(rec.increment[0]), rec.increment[1])
             mine = dataclasses.replace(rec, state=system.evaluate(system.owned_of(np.asarray(st.d, float)), st.t, st.alpha),
                                        increment=inc)
-            owned.append(mine)
             on_step(mine, replay=True)
+            # only the last keeps its evaluated state (F, P and the moduli of every node)
+            owned[-1:] = [dataclasses.replace(r, state=_newton.SavedState(r.state.d, r.state.t, r.state.alpha))
+                          for r in owned[-1:]]
+            owned.append(mine)
         if done:
             info["resumed_after_step"] = len(done) - 1
             mem = done[-1].solver  # the preconditioner or factors the interrupted solve held
