@@ -99,13 +99,15 @@ def run_case(case: str) -> dict:
     res = load_results(out, lazy=False)
     info = res.info
     lin = [int(i) for i in info.get("linear_iterations", [])]
-    row.update(nodes=int(res.model.n_nodes), status=res.status, held_nodes_rank0=info.get("held_nodes"),
+    row.update(nodes=int(res.model.n_nodes), spacing_cm=[float(h) for h in res.model.spacing], status=res.status,
+               held_nodes_rank0=info.get("held_nodes"),
                owned_nodes_rank0=info.get("owned_nodes"),
                peak_rss_GB=round(sum(per_rank), 2), peak_rss_GB_per_rank_max=round(max(per_rank), 2),
                peak_rss_GB_per_rank=[round(p, 2) for p in per_rank],
                newton_iterations_per_step=[int(i) for i in res.iterations],
                krylov_iterations_per_system=lin, krylov_iterations_total=int(sum(lin)),
                preconditioner_builds=info.get("preconditioner_builds"),
+               preconditioner_build_s=info.get("preconditioner_build_s"),
                resumed_after_step=info.get("resumed_after_step"), sweep_s=round(float(info["total_s"]), 1),
                force_z_max_N=[float(f) for f in res.force("z_max")])
     return {**row, **fields}
@@ -161,7 +163,8 @@ def main(argv=None) -> int:
         if a.solve_record and not row["exit"]:
             solve = json.loads(SOLVE_RESULTS.read_text())
             key = f"{row['size']}:petsc_mixed:{row['ranks']}"
-            entry = {**row, "case": key, "dofs": 3 * row["nodes"], "alpha_to": 0.95}
+            entry = {**row, "case": key, "dofs": 3 * row["nodes"], "alpha_to": 0.95,
+                     "newton_iterations_total": int(sum(row["newton_iterations_per_step"]))}
             solve["cases"] = [c for c in solve["cases"] if c.get("case") != key] + [entry]
             SOLVE_RESULTS.write_text(json.dumps(solve, indent=2) + "\n")
         print(case, row.get("wall_s"), "s", row.get("peak_rss_GB_per_rank_max"), "GB/rank",

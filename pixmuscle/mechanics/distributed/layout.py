@@ -30,12 +30,16 @@ class Layout:
         Global PETSc index of every held node.
     model_index : (n_held,) int
         Model index of every held node, ascending.
+    X : (n_held, 3) float
+        Coordinates of the held nodes, cm (the multigrid's rigid-body modes).
+    ijk : (n_held, 3) int
+        Their voxel indices (the order of the region factorisations).
     root_order : (N,) int or None
         On rank 0: the model index of every PETSc index (to write results in model order).
     """
 
     def __init__(self, comm, n_global: int, own: np.ndarray, petsc: np.ndarray, model_index: np.ndarray,
-                 root_order: np.ndarray | None = None):
+                 X: np.ndarray, ijk: np.ndarray, root_order: np.ndarray | None = None):
         self.PETSc = PETSc = import_petsc()
         self.comm = comm
         self.mpi = comm.tompi4py()
@@ -44,6 +48,7 @@ class Layout:
         self.own = np.asarray(own, np.int64)
         self.petsc = np.asarray(petsc, np.int64)
         self.model_index = np.asarray(model_index, np.int64)
+        self.X, self.ijk = np.asarray(X, float), np.asarray(ijk)
         self.n_own, self.n_held = self.own.size, self.petsc.size
         self.start = int(self.mpi.exscan(self.n_own) or 0)
         self.root_order = root_order
@@ -55,11 +60,12 @@ class Layout:
         self.patches: PatchLayout | None = None
 
     @classmethod
-    def single(cls, n: int) -> Layout:
-        """The layout of a system that holds and owns all ``n`` nodes (one rank, no halo)."""
+    def single(cls, X: np.ndarray, ijk: np.ndarray) -> Layout:
+        """The layout of a system that holds and owns all nodes, at ``X`` (N, 3) cm with voxel indices
+        ``ijk`` (one rank, no halo)."""
         PETSc = import_petsc()
-        idx = np.arange(n)
-        return cls(PETSc.COMM_WORLD, n, idx, idx, idx, root_order=idx)
+        idx = np.arange(np.shape(X)[0])
+        return cls(PETSc.COMM_WORLD, idx.size, idx, idx, idx, X, ijk, root_order=idx)
 
     # -- node vectors ---------------------------------------------------------------------------
 

@@ -109,7 +109,8 @@ def build_distributed_system(model: Model, cfg: SolveConfig, comm=None) -> tuple
     petsc_of = np.empty(n, np.int64)
     petsc_of[order] = np.arange(n)
     own = np.flatnonzero(owned[held])
-    layout = Layout(comm, n, own, petsc_of[held], held, root_order=order if rank == 0 else None)
+    layout = Layout(comm, n, own, petsc_of[held], held, np.asarray(model.X)[held], np.asarray(model.ijk)[held],
+                    root_order=order if rank == 0 else None)
     del petsc_of, order, counts
     wide = np.any(supports[own] > supports[own].min(axis=0) * (1 + 1e-9), axis=1) if own.size else np.zeros(0, bool)
     enlarged = int(layout.sum(int(np.count_nonzero(wide))))
@@ -231,21 +232,24 @@ class DistributedSystem:
         self.layout = layout
         self.n_nodes = layout.n_own
         self.n_global = layout.n_global
-        self.atol = held.atol
-        held.counted = layout.own
+        if layout.size > 1:
+            held.counted = layout.own
         self._activation = None
         self._weight = None
-        if held.volumetric is not None:
-            layout.patches = PatchLayout(layout, held.volumetric.patch_of)
+        space = held.pressure_space()
+        if space is not None:
+            layout.patches = PatchLayout(layout, space.patch_of)
+
+    @property
+    def atol(self) -> float:
+        """The residual floor of the whole model, N."""
+        return self.held.atol
 
     @classmethod
-    def single(cls, system: MechanicalSystem) -> DistributedSystem:
-        """The serial ``system`` as a distributed system of one rank (kept on it: made once)."""
-        made = getattr(system, "_as_distributed", None)
-        if made is None:
-            made = cls(system, Layout.single(system.n_nodes))
-            system._as_distributed = made
-        return made
+    def single(cls, system, X: np.ndarray, ijk: np.ndarray) -> DistributedSystem:
+        """The serial ``system`` (any :class:`~..linsolve.operator.SystemOperator`) with nodes at ``X``
+        (N, 3) cm and voxel indices ``ijk`` as a distributed system of one rank."""
+        return cls(system, Layout.single(X, ijk))
 
     @property
     def activation(self):
@@ -302,7 +306,7 @@ class DistributedSystem:
         """The held system's :class:`..pressure.PressureSpace` with the scale w of the whole model
         (the mean of μ_p V_p over every rank's own free patches); None without a projected energy."""
         space = self.held.pressure_space()
-        if space is None or self._weight is not None:
+        if space is None or self._weight is not None or self.layout.size == 1:
             return space
         own = self.layout.patches.own
         free = own[~self.held.volumetric.held[own]]

@@ -78,9 +78,10 @@ class PETScOptions(Iterative):
             raise ValueError(f"backend: petsc: {INSTALL_HINT}")
 
 
-def distributed(system, state=None):
+def distributed(system, state=None, X=None, ijk=None, made=None):
     """``system`` (and ``state``) as a :class:`..distributed.DistributedSystem` (and its state): a
-    serial system becomes one of a single rank (only without ``mpiexec``)."""
+    serial system with nodes at ``X`` (N, 3) cm and voxel indices ``ijk`` becomes one of a single
+    rank (only without ``mpiexec``), or ``made`` when that is already the one of this system."""
     from ..distributed import DistributedState, DistributedSystem
 
     if isinstance(system, DistributedSystem):
@@ -89,7 +90,7 @@ def distributed(system, state=None):
     if PETSc.COMM_WORLD.getSize() > 1:
         raise SolverError("under mpiexec the PETSc backends solve the distributed system "
                           "(pixmuscle.mechanics.distributed.build_distributed_system), not a whole one")
-    ds = DistributedSystem.single(system)
+    ds = made if made is not None and made.held is system else DistributedSystem.single(system, X, ijk)
     if state is None or isinstance(state, DistributedState):
         return ds, state
     vol = None
@@ -108,9 +109,9 @@ class PETScSolver(LinearSolver):
     Parameters
     ----------
     X : (N, 3) float
-        Node coordinates, cm (unused: the system's layout gives each rank its nodes).
+        Node coordinates, cm, of a serial system (a distributed one's layout has its ranks' own).
     ijk : (N, 3) int
-        Voxel indices (unused, as ``X``).
+        Voxel indices, as ``X``.
     rtol : float
         Relative residual when the caller gives none.
     maxiter : int
@@ -128,6 +129,8 @@ class PETScSolver(LinearSolver):
         self.rank, self.size = self.comm.getRank(), self.comm.getSize()
         self.rtol, self.maxiter = rtol, maxiter
         self.options = set_options(_PREFIX, DEFAULT_OPTIONS, options)
+        self._nodes = (X, ijk) if self.size == 1 else (None, None)  # where a serial system's nodes are
+        self._single = None
         self.layout = None
         self._rows = None
         self._ksp = None
@@ -139,7 +142,9 @@ class PETScSolver(LinearSolver):
 
     def _attach(self, system, state):
         """The distributed system and state, and this rank's layout (kept)."""
-        system, state = distributed(system, state)
+        system, state = distributed(system, state, *self._nodes, made=self._single)
+        if system.layout.size == 1:
+            self._single = system  # a serial system's one-rank view, made once
         self.layout = system.layout
         self.info["owned_nodes"] = int(self.layout.n_own)
         return system, state
@@ -186,7 +191,7 @@ class PETScSolver(LinearSolver):
         A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         A.assemble()
         coords = PETSc.Vec().createMPI((n_loc, n), bsize=3, comm=self.comm)
-        coords.setArray(np.asarray(system.held.model.X, float)[lay.own].ravel())
+        coords.setArray(lay.X[lay.own].ravel())
         A.setNearNullSpace(PETSc.NullSpace().createRigidBody(coords))
         return A
 

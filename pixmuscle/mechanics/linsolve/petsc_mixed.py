@@ -162,7 +162,7 @@ class DisplacementPreconditioner:
         if s.region_solves:
             if self.regions is None:
                 parts = [np.intersect1d(nodes, lay.own, assume_unique=True) for nodes in held.stiff_regions()]
-                self.regions = held.region_solves([p for p in parts if p.size], held.model.ijk)
+                self.regions = held.region_solves([p for p in parts if p.size], lay.ijk)
                 s.info["region_nodes"] = int(lay.sum(int(self.regions.n_nodes)))
             self.regions.update(state.held)
 
@@ -215,7 +215,7 @@ def _multigrid(A, s, system, PETSc):
     else:
         lay = system.layout
         coords = PETSc.Vec().createMPI((3 * lay.n_own, 3 * lay.n_global), bsize=3, comm=lay.comm)
-        coords.setArray(np.asarray(system.held.model.X, float)[lay.own].ravel())
+        coords.setArray(lay.X[lay.own].ravel())
         A.setNearNullSpace(PETSc.NullSpace().createRigidBody(coords))
         pc = PETSc.PC().create(comm=lay.comm)
         pc.setOptionsPrefix(_AMG_PREFIX)
@@ -234,9 +234,9 @@ class PETScMixedSolver(PETScSolver):
     Parameters
     ----------
     X : (N, 3) float
-        Node coordinates, cm (unused: the system's layout gives each rank its nodes).
+        Node coordinates, cm, of a serial system (a distributed one's layout has its ranks' own).
     ijk : (N, 3) int
-        Voxel indices (unused, as ``X``).
+        Voxel indices, as ``X``.
     rtol : float
         Relative condensed residual when the caller gives none.
     maxiter : int
@@ -324,7 +324,7 @@ class PETScMixedSolver(PETScSolver):
         patches they are, and their first global index."""
         lay = system.layout
         own = lay.patches.own
-        sel = ~system.held.volumetric.held[own]
+        sel = np.isin(own, system.pressure_space().free)
         mine = own[sel]
         self.info["pressures"] = int(lay.sum(int(mine.size)))
         return mine, sel, int(lay.mpi.exscan(int(mine.size)) or 0), self.info["pressures"]
