@@ -750,13 +750,7 @@ def build_system(model: Model, cfg: SolveConfig, *, supports: np.ndarray | None 
     sup = scni.support
     info["scni_s"] = time.perf_counter() - t0
     materials = solve_materials(cfg)
-    ident = np.broadcast_to(np.eye(3), (model.n_nodes, 3, 3))
-    present = [c for c in NODE_TISSUES if np.any(model.tissue == c)]
-    A0 = np.empty((model.n_nodes, 3, 3, 3, 3))
-    for c in present:
-        idx = np.flatnonzero(model.tissue == c)
-        kw = material_kw(materials[c], model.fiber[idx], 0.0)
-        A0[idx] = materials[c].stress_tangent(np.ascontiguousarray(ident[idx]), **kw)[1]
+    A0 = reference_moduli(model.tissue, model.fiber, materials)
     t3 = time.perf_counter()
     if beta is None:
         beta = cfg.penalty.beta if cfg.penalty.beta is not None else penalty_number(A0, model.spacing, cfg.penalty.factor)
@@ -776,6 +770,28 @@ def build_system(model: Model, cfg: SolveConfig, *, supports: np.ndarray | None 
     if not constraints.points.shape[0] and n_total is None:
         _LOG.warning("no boundary condition constrains any node: the stiffness is singular")
     return system, info
+
+
+def reference_moduli(tissue: np.ndarray, fiber: np.ndarray, materials: dict) -> np.ndarray:
+    """A(F = I) at every node, (N, 3, 3, 3, 3) N/cm²: each node's material at rest (α = 0).
+
+    Parameters
+    ----------
+    tissue : (N,) int
+        Tissue code per node.
+    fiber : (N, 3) float
+        Unit fibre direction per node.
+    materials : dict
+        Tissue code → material (:func:`solve_materials`).
+    """
+    tissue = np.asarray(tissue)
+    A0 = np.empty((tissue.size, 3, 3, 3, 3))
+    for c in NODE_TISSUES:
+        idx = np.flatnonzero(tissue == c)
+        if idx.size:
+            ident = np.broadcast_to(np.eye(3), (idx.size, 3, 3)).copy()
+            A0[idx] = materials[c].stress_tangent(ident, **material_kw(materials[c], np.asarray(fiber)[idx], 0.0))[1]
+    return A0
 
 
 def model_scni(model: Model, cfg: SolveConfig, *, face_gradients: bool = False,

@@ -32,18 +32,21 @@ def cell_depth(a_over_h, patch=(1, 1, 1), enlarged: float = 1.0) -> np.ndarray:
     c = ⌈s + ½⌉ − 1 voxels of it, and the volumetric patches (``patch`` voxels, 2 × 2 × 3 by
     default) of those cells reach patch − 1 voxels further: c + patch − 1.
     """
-    s = np.broadcast_to(np.asarray(a_over_h, float), (3,)) * float(enlarged)
-    c = np.ceil(s + 0.5 - 1e-9).astype(np.int64) - 1
-    return c + np.broadcast_to(np.asarray(patch, np.int64), (3,)) - 1
+    return _reach(a_over_h, enlarged) + np.broadcast_to(np.asarray(patch, np.int64), (3,)) - 1
 
 
 def halo_depth(a_over_h, patch=(1, 1, 1), enlarged: float = 1.0) -> np.ndarray:
     """Voxels (i, j, k) of halo around a rank's nodes for the exact rows of its nodes: the cells of
     :func:`cell_depth` and, c voxels further, the nodes their shape functions take (2c + patch − 1;
     nominal a/h = 1.65 and 2 × 2 × 3 patches: (5, 5, 6))."""
+    return cell_depth(a_over_h, patch, enlarged) + _reach(a_over_h, enlarged)
+
+
+def _reach(a_over_h, enlarged: float) -> np.ndarray:
+    """c = ⌈s + ½⌉ − 1 per axis: the voxels between a cell and the farthest node its integration
+    points (half a voxel from its centre) take, supports of s = a/h · ``enlarged`` voxels."""
     s = np.broadcast_to(np.asarray(a_over_h, float), (3,)) * float(enlarged)
-    c = np.ceil(s + 0.5 - 1e-9).astype(np.int64) - 1
-    return cell_depth(a_over_h, patch, enlarged) + c
+    return np.ceil(s + 0.5 - 1e-9).astype(np.int64) - 1
 
 
 def cover_margin(a_over_h, enlarged: float = 1.0) -> np.ndarray:

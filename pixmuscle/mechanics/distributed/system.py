@@ -29,11 +29,10 @@ import numpy as np
 
 from ...errors import InputError, SolverError
 from ...model.model import Model
-from ...model.tissues import NODE_TISSUES
 from ..boundary import check_boundary_conditions, end_rule, penalty_number
 from ..config import SolveConfig
 from ..scni import support_radius
-from ..system import MechanicalSystem, State, build_system, material_kw, rk_supports, solve_materials
+from ..system import MechanicalSystem, State, build_system, reference_moduli, rk_supports, solve_materials
 from .layout import Layout, PatchLayout
 from .partition import bisection_partition, cell_depth, cover_margin, halo, halo_depth
 
@@ -60,14 +59,8 @@ def global_penalty_number(model: Model, cfg: SolveConfig, nodes: np.ndarray, lay
     its own ``nodes``, the largest over the ranks."""
     if cfg.penalty.beta is not None:
         return float(cfg.penalty.beta)
-    materials = solve_materials(cfg)
-    largest = 0.0
-    for code in NODE_TISSUES:
-        idx = nodes[np.asarray(model.tissue)[nodes] == code]
-        if idx.size:
-            ident = np.broadcast_to(np.eye(3), (idx.size, 3, 3)).copy()
-            A0 = materials[code].stress_tangent(ident, **material_kw(materials[code], np.asarray(model.fiber)[idx], 0.0))[1]
-            largest = max(largest, max(float(np.max(A0[:, i, J, i, J])) for i in range(3) for J in range(3)))
+    A0 = reference_moduli(np.asarray(model.tissue)[nodes], np.asarray(model.fiber)[nodes], solve_materials(cfg))
+    largest = max((float(np.max(A0[:, i, J, i, J])) for i in range(3) for J in range(3)), default=0.0) if nodes.size else 0.0
     largest = layout.max(largest)
     return penalty_number(np.full((1, 3, 3, 3, 3), largest), model.spacing, cfg.penalty.factor)
 
