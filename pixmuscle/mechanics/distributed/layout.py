@@ -50,7 +50,6 @@ class Layout:
         self.model_index = np.asarray(model_index, np.int64)
         self.X, self.ijk = np.asarray(X, float), np.asarray(ijk)
         self.n_own, self.n_held = self.own.size, self.petsc.size
-        self.start = int(self.mpi.exscan(self.n_own) or 0)
         self.root_order = root_order
         self._xg = PETSc.Vec().createMPI((3 * self.n_own, 3 * self.n_global), bsize=3, comm=comm)
         self._xl = PETSc.Vec().createSeq(3 * self.n_held, bsize=3, comm=PETSc.COMM_SELF)

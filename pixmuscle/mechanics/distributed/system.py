@@ -256,10 +256,6 @@ class DistributedSystem:
         self.held.activation = None if ramp is None else dataclasses.replace(
             ramp, start=ramp.start[idx], end=ramp.end[idx], muscle=ramp.muscle[idx])
 
-    @property
-    def constraints(self):
-        return self.held.constraints
-
     # -- Newton ---------------------------------------------------------------------------------
 
     def inner(self, a: np.ndarray, b: np.ndarray) -> float:
