@@ -18,7 +18,9 @@ measurement) gets these fields from :class:`Run`:
     True when what is measured ran at the shipped defaults (every setting the pipeline ships left as
     it is); the script says so.
 ``peak_rss_GB``
-    Peak resident memory of the benchmark's process tree, :func:`peak_rss_GB`.
+    Peak memory of the benchmark's process tree, :func:`peak_rss_GB`: the largest sum over the
+    process and all its descendants (the BoomerAMG workers and children included) of each one's
+    proportional set size, sampled every :data:`SAMPLE_S` seconds by :class:`TreeMemory`.
 
 Rows made before the shipped defaults last changed are marked afterwards by
 ``benchmarks/mark_superseded.py`` (``"superseded"``), from :data:`DEFAULTS_CHANGES`.
@@ -27,20 +29,18 @@ Rows made before the shipped defaults last changed are marked afterwards by
 from __future__ import annotations
 
 import datetime as dt
-import json
 import os
 import platform
 import resource
 import shlex
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
-#: environment variable naming the file a child run through :func:`child_command` writes its BoomerAMG
-#: workers' peaks to (kB, one JSON list)
-WORKERS_FILE_ENV = "PIXMUSCLE_BENCH_WORKERS_FILE"
 
 #: Commits that changed the shipped defaults of the solve (oldest first): (commit, date, what changed).
 #: A record made before the last of them is not at today's defaults; ``mark_superseded.py`` names,
@@ -98,26 +98,93 @@ def machine() -> dict:
             "processor": processor, "os": f"{platform.system()} {platform.release()}", "python": platform.python_version()}
 
 
-def workers_peak_kb() -> int:
-    """Summed peaks (kB) of the BoomerAMG worker processes of this process (``amg_processes``, only
-    while they run) and of those the children run by :func:`child_command` reported."""
-    total = 0
-    if "pixmuscle.mechanics.linsolve.amg_processes" in sys.modules:  # never import MPI just to ask
-        total += sum(sys.modules["pixmuscle.mechanics.linsolve.amg_processes"].workers_peak_rss_kb())
-    return total + _reported_kb
+#: seconds between two samples of the process tree's memory (:class:`TreeMemory`)
+SAMPLE_S = 0.25
 
 
-_reported_kb = 0
+def _children() -> dict[int, list[int]]:
+    """Each process's children (by its parent's pid), from ``/proc/*/stat``."""
+    out: dict[int, list[int]] = {}
+    for name in os.listdir("/proc"):
+        if not name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{name}/stat", "rb") as f:
+                ppid = int(f.read().rsplit(b")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        out.setdefault(ppid, []).append(int(name))
+    return out
+
+
+def _pss_kb(pid: int) -> int:
+    """Proportional set size of ``pid``, kB: its resident pages, each page shared by k processes
+    counted 1/k (``/proc/PID/smaps_rollup``); its resident size where that is not readable."""
+    for path, key in ((f"/proc/{pid}/smaps_rollup", "Pss:"), (f"/proc/{pid}/status", "VmRSS:")):
+        try:
+            with open(path) as f:
+                for line in f:
+                    if line.startswith(key):
+                        return int(line.split()[1])
+        except (OSError, ValueError):
+            continue
+    return 0
+
+
+def tree_kb(root: int | None = None) -> int:
+    """Memory of the process ``root`` (this one by default) and all its descendants now, kB: the sum
+    of their proportional set sizes (:func:`_pss_kb`), so that pages a fork shares are counted once.
+    The BoomerAMG workers that ``amg_processes`` spawns are descendants (of Open MPI's daemon, a
+    child of the run)."""
+    root = os.getpid() if root is None else root
+    children, total, todo = _children(), 0, [root]
+    while todo:
+        pid = todo.pop()
+        total += _pss_kb(pid)
+        todo.extend(children.get(pid, ()))
+    return total
+
+
+class TreeMemory:
+    """The largest :func:`tree_kb` of this process tree since :meth:`start`, sampled every
+    :data:`SAMPLE_S` seconds by a daemon thread (one per process, started when a benchmark imports
+    this module).
+
+    A sample can miss a peak shorter than the interval; :func:`peak_rss_GB` therefore takes the
+    larger of the sampled peak and this process's own high-water mark (exact, ``RUSAGE_SELF``).
+    """
+
+    def __init__(self, interval: float = SAMPLE_S):
+        self.interval = float(interval)
+        self.peak_kb = 0
+        self._thread = None
+
+    def start(self) -> TreeMemory:
+        if self._thread is None:
+            self.sample()
+            self._thread = threading.Thread(target=self._run, name="tree-memory", daemon=True)
+            self._thread.start()
+        return self
+
+    def sample(self) -> int:
+        self.peak_kb = max(self.peak_kb, tree_kb())
+        return self.peak_kb
+
+    def _run(self) -> None:
+        while True:
+            time.sleep(self.interval)
+            self.sample()
+
+
+_sampler = TreeMemory().start()
 
 
 def peak_rss_GB() -> float:
-    """Peak resident memory of this process's tree, GB: the sum of this process's peak
-    (``RUSAGE_SELF``), the largest peak among its finished children together with their own waited-for
-    children (``RUSAGE_CHILDREN``), and the peaks of the BoomerAMG workers (:func:`workers_peak_kb`),
-    which MPI starts outside this tree. Summing peaks bounds the peak of the sum from above; children
-    run one after another count as the largest of them."""
-    kb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss + resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-          + workers_peak_kb())
+    """Peak memory of this process's tree, GB: the largest sampled sum of the proportional set sizes
+    of this process and all its descendants (:class:`TreeMemory`: BoomerAMG workers, children and
+    MPI ranks started by a child ``mpiexec`` included; pages shared after a fork counted once), or
+    this process's own high-water mark (``RUSAGE_SELF``) where that is larger."""
+    kb = max(_sampler.sample(), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
     return round(kb / 1024**2, 2)  # Linux: ru_maxrss in kB
 
 
@@ -160,67 +227,26 @@ class Run:
                 "peak_rss_GB": globals()["peak_rss_GB"]() if peak_rss_GB is None else peak_rss_GB}
 
 
-def child_command(argv: list[str]) -> list[str]:
-    """``[python, _record.py, --child, *argv]``: runs ``python ARGV`` (a script, ``-m module`` or ``-c code``) in a
-    child that, before its BoomerAMG workers stop, writes their peaks to the file named by
-    :data:`WORKERS_FILE_ENV`; :func:`run_child` adds them to this process's :func:`peak_rss_GB`."""
-    return [sys.executable, str(Path(__file__).resolve()), "--child", *argv]
-
-
 def run_child(argv: list[str], **popen) -> tuple[int, object, int]:
-    """Run ``python ARGV`` through :func:`child_command` and wait for it.
+    """Run ``python ARGV`` (a script, ``-m module`` or ``-c code``) and wait for it, sampling the
+    memory of its process tree (:func:`tree_kb` of the child, every :data:`SAMPLE_S` seconds) as it runs.
 
     Returns
     -------
     exit_code : int
     usage : resource.struct_rusage
-        ``wait4``'s usage of the child (``ru_maxrss``: the largest process of its tree, kB).
-    workers_kb : int
-        The summed peaks of the BoomerAMG workers the child started (0 without).
+        ``wait4``'s usage of the child.
+    peak_kb : int
+        The largest sampled memory of the child's tree (its BoomerAMG workers and Dask workers
+        included), or the child's own high-water mark where that is larger, kB.
     """
-    global _reported_kb
-    import tempfile
-
-    with tempfile.NamedTemporaryFile("r", suffix=".json") as f:
-        env = {**os.environ, **popen.pop("env", {}), WORKERS_FILE_ENV: f.name}
-        proc = subprocess.Popen(child_command(argv), env=env, **popen)
-        _, status, usage = os.wait4(proc.pid, 0)
-        proc.returncode = os.waitstatus_to_exitcode(status)
-        text = Path(f.name).read_text()
-    workers = sum(json.loads(text)) if text.strip() else 0
-    _reported_kb = max(_reported_kb, workers)
-    return proc.returncode, usage, workers
-
-
-def _child(argv: list[str]) -> None:
-    """Run ``python ARGV`` in this process, reporting its BoomerAMG workers' peaks when they stop."""
-    import runpy
-
-    sys.path.insert(0, os.getcwd())
-    try:
-        from pixmuscle.mechanics.linsolve import amg_processes
-    except ImportError:
-        amg_processes = None
-    if amg_processes is not None and os.environ.get(WORKERS_FILE_ENV):
-        close, seen = amg_processes.WorkerGroup.close, {}
-
-        def close_reporting(self):
-            if self.open and not self.busy:
-                seen[id(self)] = self.peak_rss_kb()
-                Path(os.environ[WORKERS_FILE_ENV]).write_text(json.dumps([kb for v in seen.values() for kb in v]))
-            close(self)
-
-        amg_processes.WorkerGroup.close = close_reporting
-    if argv[0] == "-c":
-        sys.argv = ["-c", *argv[2:]]
-        exec(compile(argv[1], "<string>", "exec"), {"__name__": "__main__"})
-    elif argv[0] == "-m":
-        sys.argv = [argv[1], *argv[2:]]
-        runpy.run_module(argv[1], run_name="__main__", alter_sys=True)
-    else:
-        sys.argv = list(argv)
-        runpy.run_path(argv[0], run_name="__main__")
-
-
-if __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "--child":
-    _child(sys.argv[2:])
+    proc = subprocess.Popen([sys.executable, *argv], **popen)
+    peak = 0
+    while True:
+        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+        if pid:
+            break
+        peak = max(peak, tree_kb(proc.pid))
+        time.sleep(SAMPLE_S)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return proc.returncode, usage, max(peak, usage.ru_maxrss)

@@ -55,16 +55,16 @@ EXAMPLES = {
 
 def _cli(config: str, *args: str) -> tuple[float, int, str, float]:
     """Run ``pixmuscle -q run CONFIG ARGS``; wall time (s), exit code, stderr tail and peak memory (GB:
-    the largest resident set of the child and the processes it waited for, ``wait4``, plus the peaks of
-    the BoomerAMG workers it started, :func:`_record.run_child`)."""
+    the largest sampled memory of the child's process tree, its BoomerAMG and Dask workers included,
+    :func:`_record.run_child`)."""
     with tempfile.TemporaryFile("w+") as err:
         t0 = time.perf_counter()
-        code, usage, workers_kb = run_child(["-m", "pixmuscle.cli", "-q", "run", config, *args], cwd=ROOT,
-                                            stdout=subprocess.DEVNULL, stderr=err, text=True)
+        code, _, peak_kb = run_child(["-m", "pixmuscle.cli", "-q", "run", config, *args], cwd=ROOT,
+                                     stdout=subprocess.DEVNULL, stderr=err, text=True)
         wall = time.perf_counter() - t0
         err.seek(0)
         tail = err.read()[-1500:]
-    return wall, code, tail, (usage.ru_maxrss + workers_kb) / 1024**2  # Linux: ru_maxrss in kB
+    return wall, code, tail, peak_kb / 1024**2
 
 
 def _rel(p: Path) -> str:

@@ -14,7 +14,12 @@ command, each rank's own peak resident memory (``RUSAGE_SELF`` written at its ex
 at ``z_max`` per step and the fields of :mod:`_record`. Four ranks on this 2-core machine are
 oversubscribed: their rows count for memory and iterations, not time.
 
-Run:  .venv/bin/python benchmarks/bench_scaling.py [--cases 37k:1 75k:2 150k:4 295k:2] [--solve-record]
+``SIZE:serial`` is the serial baseline of the same model and load steps: ``pixmuscle solve`` at the
+shipped defaults (``auto``: ``mixed_amg`` with its BoomerAMG worker) in one child process, its peak
+the largest sampled memory of that process tree (:func:`_record.run_child`); these rows stay in this
+record only.
+
+Run:  .venv/bin/python benchmarks/bench_scaling.py [--cases 37k:1 75k:2 150k:4 295k:2 295k:serial] [--solve-record]
       .venv/bin/python benchmarks/bench_scaling.py --model     # the memory model from the record
 Results: benchmarks/results/bench_weak_scaling.json (``cases``, merged by case); with
 ``--solve-record`` the rows also go into bench_solve.json (as ``SIZE:petsc_mixed:P``). A killed case
@@ -29,11 +34,12 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _record import Run  # noqa: E402
+from _record import Run, run_child  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results" / "bench_weak_scaling.json"
@@ -45,8 +51,9 @@ LEGS = {"37k": (1.04, 12), "150k": (1.04, 50)}
 STEPS = 10
 
 
-def _model(size: str) -> tuple[Path, Path]:
-    """The model file and config of ``size`` (made once)."""
+def _model(size: str, backend: str = "petsc_mixed") -> tuple[Path, Path]:
+    """The model file (made once) and the config of ``size`` with ``backend`` (``auto``: the shipped
+    default, the solver section left out)."""
     import bench_solve
     import yaml
 
@@ -55,23 +62,27 @@ def _model(size: str) -> tuple[Path, Path]:
     bench_solve.SIZES.update(LEGS)
     work = WORK / size
     work.mkdir(parents=True, exist_ok=True)
-    model_path, cfg_path = work / "model.h5", work / "petsc_mixed.yaml"
+    model_path, cfg_path = work / "model.h5", work / f"{backend}.yaml"
     if not model_path.exists():
         model, _ = bench_solve.leg_case(size, None)
         save_model(model_path, model)
     solve = {"boundary_conditions": [{"nodes": "z_min", "fix": ["x", "y", "z"]},
                                      {"nodes": "z_max", "fix": ["x", "y", "z"]},
                                      {"nodes": "bone_surface", "fix": ["x", "y"]}],
-             "steps": STEPS, "activation": {"from": 0.0, "to": 0.95}, "solver": {"backend": "petsc_mixed"}}
+             "steps": STEPS, "activation": {"from": 0.0, "to": 0.95}}
+    if backend != "auto":
+        solve["solver"] = {"backend": backend}
     cfg_path.write_text(yaml.safe_dump({"solve": solve}))
     return model_path, cfg_path
 
 
 def run_case(case: str) -> dict:
+    """One case, ``SIZE:RANKS`` (``petsc_mixed`` under ``mpiexec -n RANKS``) or ``SIZE:serial`` (the
+    shipped defaults in one process, its BoomerAMG worker included: the serial baseline)."""
+    if case.split(":")[1] == "serial":
+        return run_serial(case)
 
     from bench_backends import _mpiexec
-
-    from pixmuscle.io.results import load_results
 
     size, ranks = case.split(":")
     ranks = int(ranks)
@@ -96,21 +107,50 @@ def run_case(case: str) -> dict:
     if proc.returncode:
         return {**row, "stderr_tail": proc.stderr[-2000:], **fields}
     per_rank = [float(p.read_text()) for p in sorted(model_path.parent.glob(f"{peaks.name}.*"))]
+    row.update(_results(out), peak_rss_GB=round(sum(per_rank), 2), peak_rss_GB_per_rank_max=round(max(per_rank), 2),
+               peak_rss_GB_per_rank=[round(p, 2) for p in per_rank])
+    return {**row, **fields}
+
+
+def run_serial(case: str) -> dict:
+    """``SIZE:serial``: ``pixmuscle solve`` of the same model and load steps at the shipped defaults in
+    one process; its peak memory is that of its process tree (:func:`_record.run_child`: the
+    process and its BoomerAMG worker, sampled)."""
+    size = case.split(":")[0]
+    model_path, cfg_path = _model(size, "auto")
+    out = model_path.parent / "results_serial.h5"
+    record = Run(defaults=True, command=f".venv/bin/python benchmarks/bench_scaling.py --cases {case}")
+    with tempfile.TemporaryFile("w+") as err:
+        t0 = time.perf_counter()
+        code, _, peak_kb = run_child(["-m", "pixmuscle.cli", "-q", "solve", str(model_path), "--config", str(cfg_path),
+                                      "-o", str(out)], stderr=err, text=True)
+        wall = time.perf_counter() - t0
+        err.seek(0)
+        tail = err.read()[-2000:]
+    row = {"case": case, "size": size, "backend": "auto", "ranks": 1, "steps": STEPS, "wall_s": round(wall, 1),
+           "exit": code, "settings": "shipped defaults"}
+    fields = record.fields(peak_rss_GB=round(peak_kb / 1024**2, 2))
+    if code:
+        return {**row, "stderr_tail": tail, **fields}
+    row.update(_results(out), peak_rss_GB_per_rank_max=fields["peak_rss_GB"])
+    return {**row, **fields}
+
+
+def _results(out: Path) -> dict:
+    """The fields of a row read from its results file ``out``."""
+    from pixmuscle.io.results import load_results
+
     res = load_results(out, lazy=False)
     info = res.info
     lin = [int(i) for i in info.get("linear_iterations", [])]
-    row.update(nodes=int(res.model.n_nodes), spacing_cm=[float(h) for h in res.model.spacing], status=res.status,
-               held_nodes_rank0=info.get("held_nodes"),
-               owned_nodes_rank0=info.get("owned_nodes"),
-               peak_rss_GB=round(sum(per_rank), 2), peak_rss_GB_per_rank_max=round(max(per_rank), 2),
-               peak_rss_GB_per_rank=[round(p, 2) for p in per_rank],
-               newton_iterations_per_step=[int(i) for i in res.iterations],
-               krylov_iterations_per_system=lin, krylov_iterations_total=int(sum(lin)),
-               preconditioner_builds=info.get("preconditioner_builds"),
-               preconditioner_build_s=info.get("preconditioner_build_s"),
-               resumed_after_step=info.get("resumed_after_step"), sweep_s=round(float(info["total_s"]), 1),
-               force_z_max_N=[float(f) for f in res.force("z_max")])
-    return {**row, **fields}
+    return dict(nodes=int(res.model.n_nodes), spacing_cm=[float(h) for h in res.model.spacing], status=res.status,
+                held_nodes_rank0=info.get("held_nodes"), owned_nodes_rank0=info.get("owned_nodes"),
+                newton_iterations_per_step=[int(i) for i in res.iterations],
+                krylov_iterations_per_system=lin, krylov_iterations_total=int(sum(lin)),
+                preconditioner_builds=info.get("preconditioner_builds"),
+                preconditioner_build_s=info.get("preconditioner_build_s"),
+                resumed_after_step=info.get("resumed_after_step"), sweep_s=round(float(info["total_s"]), 1),
+                force_z_max_N=[float(f) for f in res.force("z_max")])
 
 
 #: legs of the memory model's predictions: name → (leg scale, slices, spacing, what it is)
@@ -127,7 +167,7 @@ def memory_model(data: dict, ranks: int = 8) -> dict:
 
     from pixmuscle.mechanics.distributed import bisection_partition, halo, halo_depth
 
-    rows = [c for c in data["cases"] if not c.get("exit")]
+    rows = [c for c in data["cases"] if not c.get("exit") and c.get("backend") == "petsc_mixed"]
     held = np.array([c["held_nodes_rank0"] or c["nodes"] for c in rows], float)
     peak = np.array([c["peak_rss_GB_per_rank_max"] for c in rows])
     slope, base = np.polyfit(held, peak, 1)
@@ -146,7 +186,7 @@ def memory_model(data: dict, ranks: int = 8) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", nargs="+", default=CASES, help="SIZE:RANKS, SIZE in 37k, 75k, 150k, 295k")
+    ap.add_argument("--cases", nargs="+", default=CASES, help="SIZE:RANKS or SIZE:serial, SIZE in 37k, 75k, 150k, 295k")
     ap.add_argument("--solve-record", action="store_true", help="also merge the rows into bench_solve.json")
     ap.add_argument("--model", action="store_true", help="only fit the memory model to the record and predict (no runs)")
     a = ap.parse_args(argv)
@@ -160,7 +200,7 @@ def main(argv=None) -> int:
         row = run_case(case)
         data["cases"] = [r for r in data["cases"] if r["case"] != case] + [row]
         RESULTS.write_text(json.dumps(data, indent=2) + "\n")
-        if a.solve_record and not row["exit"]:
+        if a.solve_record and not row["exit"] and row["backend"] == "petsc_mixed":
             solve = json.loads(SOLVE_RESULTS.read_text())
             key = f"{row['size']}:petsc_mixed:{row['ranks']}"
             entry = {**row, "case": key, "dofs": 3 * row["nodes"], "alpha_to": 0.95,

@@ -370,6 +370,14 @@ def backends() -> str:
     return "\n".join(lines)
 
 
+def _rel_diff(a: list, b: list) -> float:
+    """Largest relative difference of two force histories (relative to the largest force of ``b``)."""
+    import numpy as np
+
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-300))
+
+
 def scaling() -> str:
     """The distributed solve under mpiexec: weak scaling and the refined leg on two ranks (bench_weak_scaling.json)."""
     path = "benchmarks/results/bench_weak_scaling.json"
@@ -380,21 +388,31 @@ def scaling() -> str:
              "Newton system (mean, max) | Newton its | sweep | F_z(z_max) at α = 0.95 | load avg before → after | made at |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     order = {"37k": 0, "75k": 1, "150k": 2, "295k": 3}
-    for c in sorted(r["cases"], key=lambda c: (order.get(c["size"], 9), c["ranks"])):
+    serial = {c["size"]: c for c in r["cases"] if c.get("backend") == "auto" and not c.get("exit")}
+    for c in sorted(r["cases"], key=lambda c: (order.get(c["size"], 9), c.get("backend") == "petsc_mixed", c["ranks"])):
+        ranks = "1, serial `auto`" if c.get("backend") == "auto" else str(c["ranks"])
         if c.get("exit"):
-            lines.append(f"| `{c['size']}` | {c['ranks']} | failed (exit {c['exit']}) | | | | | | | | | | |")
+            lines.append(f"| `{c['size']}` | {ranks} | failed (exit {c['exit']}) | | | | | | | | | | |")
             continue
         its = c["krylov_iterations_per_system"]
         wall = _minutes(c["wall_s"]) + (" (oversubscribed)" if c["ranks"] > c["machine"]["cpus"] else "")
         resumed = f", resumed after step {c['resumed_after_step']}" if c.get("resumed_after_step") is not None else ""
-        lines.append(f"| `{c['size']}` | {c['ranks']} | {c['nodes']:,} | {c['nodes'] // c['ranks']:,} | "
+        lines.append(f"| `{c['size']}` | {ranks} | {c['nodes']:,} | {c['nodes'] // c['ranks']:,} | "
                      f"{c['held_nodes_rank0'] or c['nodes']:,} | **{c['peak_rss_GB_per_rank_max']:.2f} GB** | "
                      f"{c['peak_rss_GB']:.2f} GB | {sum(its) / max(len(its), 1):.1f}, {max(its, default=0)} | "
                      f"{sum(c['newton_iterations_per_step'])} | {wall}{resumed} | {c['force_z_max_N'][-1]:.3f} N | "
                      f"{_load_text(c)} | {_made(c)} |")
     lines += ["", f"Record `{path}`; each row's command is in it, e.g. `.venv/bin/python benchmarks/bench_scaling.py "
                   "--cases 75k:2`. `petsc_mixed` through `mpiexec -n P pixmuscle solve`, every other setting at its "
-                  "default; α 0 → 0.95 in 10 load steps; peak per rank: each rank's own `RUSAGE_SELF` at its exit."]
+                  "default; α 0 → 0.95 in 10 load steps; peak per rank: each rank's own `RUSAGE_SELF` at its exit. "
+                  "Serial `auto` rows: `pixmuscle solve` of the same model at the shipped defaults in one process, "
+                  "its peak the largest sampled memory of its process tree (the BoomerAMG worker included)."]
+    ratios = [f"`{c['size']}` on {c['ranks']} ranks {c['peak_rss_GB_per_rank_max'] / serial[c['size']]['peak_rss_GB']:.2f} ×, "
+              f"wall time {c['wall_s'] / serial[c['size']]['wall_s']:.2f} ×, F_z to "
+              f"{_rel_diff(c['force_z_max_N'], serial[c['size']]['force_z_max_N']):.0e}"
+              for c in r["cases"] if c.get("backend") == "petsc_mixed" and not c.get("exit") and c["size"] in serial]
+    if ratios:
+        lines += ["", "Largest rank's peak against the serial run's of the same model: " + "; ".join(ratios) + "."]
     model = r.get("memory_model")
     if model:
         lines += ["", f"Memory model (least squares over the rows above): peak per rank ≈ {model['base_GB']:.2f} GB + "

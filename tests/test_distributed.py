@@ -21,7 +21,7 @@ from pixmuscle.io.checkpoint import checkpoint_path, load_checkpoint
 from pixmuscle.io.model import save_model
 from pixmuscle.io.results import load_results
 from pixmuscle.mechanics.config import SolveConfig
-from pixmuscle.mechanics.distributed import bisection_partition, cell_depth, halo, halo_depth
+from pixmuscle.mechanics.distributed import bisection_partition, cell_depth, halo, halo_depth, needed, reach
 from pixmuscle.mechanics.distributed.system import held_part, held_system
 from pixmuscle.mechanics.solve import build_system, solve
 
@@ -69,6 +69,25 @@ def test_halo_depth_and_halo():
     assert np.flatnonzero(halo(ijk, inner, (2, 0, 0))).tolist() == [0, 1, 2]
 
 
+def test_the_cells_and_nodes_a_rank_needs_follow_each_nodes_support():
+    """With every node's reach the same, :func:`needed` is the halo at the cell depth and at the halo
+    depth; one enlarged node far off adds only itself where it reaches a needed cell."""
+    ijk = np.indices((40, 6, 5)).reshape(3, -1).T
+    owned = ijk[:, 0] < 10
+    c = reach(np.full((len(ijk), 3), 1.65))
+    assert c[0].tolist() == [2, 2, 2]
+    cells, nodes = needed(ijk, owned, c, (2, 2, 3))
+    np.testing.assert_array_equal(cells, halo(ijk, owned, cell_depth(1.65, (2, 2, 3))))
+    np.testing.assert_array_equal(nodes, halo(ijk, owned, halo_depth(1.65, (2, 2, 3))))
+    assert np.ptp(ijk[nodes, 0]) == 9 + 5  # 5 voxels beyond the last owned plane
+    far = np.flatnonzero((ijk[:, 0] == 18) & (ijk[:, 1] == 2) & (ijk[:, 2] == 2))  # 6 beyond the last needed cells
+    wide = c.copy()
+    wide[far] = reach(np.full(3, 1.65 * 4))  # c = 6
+    cells2, nodes2 = needed(ijk, owned, wide, (2, 2, 3))
+    np.testing.assert_array_equal(cells2, cells)
+    assert np.flatnonzero(nodes2 & ~nodes).tolist() == far.tolist()
+
+
 @pytest.mark.parametrize("parts", [2, 3, 4])
 def test_a_ranks_rows_from_its_nodes_plus_halo_are_the_whole_systems(parts):
     """For every rank of a P-way cut: the residual and the tangent product at its own nodes, computed
@@ -84,19 +103,22 @@ def test_a_ranks_rows_from_its_nodes_plus_halo_are_the_whole_systems(parts):
     v = rng.standard_normal((model.n_nodes, 3))
     Kv = (whole.tangent_operator(state) @ v.ravel()).reshape(-1, 3)
     part = bisection_partition(model.ijk, parts)
+    spared = 0
     for rank in range(parts):
         owned = part == rank
         held, sup, largest = held_part(model, cfg, owned)
         held, sup, _ = held_part(model, cfg, owned, largest)  # the depth of the model's largest support
         assert held.size < model.n_nodes
+        spared += np.count_nonzero(halo(model.ijk, owned, halo_depth(1.65, (2, 2, 3), largest))) - held.size
         np.testing.assert_array_equal(sup, whole.scni.support[held])
-        system, _ = held_system(model, cfg, held, sup, whole.constraints.beta, owned[held], largest)
+        system, _ = held_system(model, cfg, held, sup, whole.constraints.beta, owned[held])
         assert 0 < np.count_nonzero(system.inert) < held.size - np.count_nonzero(owned)
         st = system.evaluate(d[held], 0.5, 0.6)
         own = np.flatnonzero(owned[held])
         assert np.abs(st.r[own] - state.r[held[own]]).max() <= 1e-12 * np.abs(state.r).max()
         y = (system.tangent_operator(st) @ v[held].ravel()).reshape(-1, 3)[own]
         assert np.abs(y - Kv[held[own]]).max() <= 1e-12 * np.abs(Kv).max()
+    assert spared > 0  # node by node, the few enlarged supports do not deepen the whole halo
 
 
 @pytest.fixture(scope="module")

@@ -27,10 +27,29 @@ def test_a_record_carries_every_field():
     assert fields["utc"].endswith("+00:00")
 
 
-def test_a_child_run_is_counted_in_the_tree():
+_TREE = """
+import os, sys, time
+import numpy as np
+held = np.ones(300 * 2**20 // 8)                 # 300 MiB in the child, touched
+pid = os.fork()
+if pid == 0:
+    if sys.argv[1] == "own":
+        mine = np.ones(200 * 2**20 // 8)         # 200 MiB more in the grandchild
+    time.sleep(1.5)                              # "shared": only the child's pages, shared after the fork
+    os._exit(0)
+os.waitpid(pid, 0)
+sys.exit(3)
+"""
+
+
+def test_a_child_tree_is_measured_with_its_descendants_and_shared_pages_once():
     record = _module("_record")
-    code, usage, workers = record.run_child(["-c", "import sys; sys.exit(3)"])
-    assert code == 3 and usage.ru_maxrss > 0 and workers == 0
+    code, usage, own = record.run_child(["-c", _TREE, "own"])
+    assert code == 3 and usage.ru_maxrss > 0
+    assert 0.48 < own / 2**20 < 0.75  # 300 + 200 MiB (+ numpy's import in both) and no more
+    code, _, shared = record.run_child(["-c", _TREE, "shared"])
+    assert code == 3
+    assert 0.29 < shared / 2**20 < 0.45  # the forked pages are counted once, not twice
 
 
 def test_the_estimate_is_the_fit_to_todays_default_sweeps():

@@ -9,7 +9,9 @@ number of ranks up to the number of nodes can be used, and the cut faces stay sm
 :func:`halo` gives the nodes within a box of voxels around a rank's own nodes (Chebyshev distance
 per axis on the voxel grid, by dilation of the grid's occupancy): the nodes whose data a rank needs
 to evaluate its rows; :func:`halo_depth` is that depth for the pixel-point model, :func:`cell_depth`
-the depth of the integration cells those rows need.
+the depth of the integration cells those rows need, both for the model's largest support.
+:func:`needed` then takes each node's own support: the cells and nodes a rank's rows need when
+only a few supports (beside thin features) are enlarged.
 
 References
 ----------
@@ -45,8 +47,50 @@ def halo_depth(a_over_h, patch=(1, 1, 1), enlarged: float = 1.0) -> np.ndarray:
 def _reach(a_over_h, enlarged: float) -> np.ndarray:
     """c = ⌈s + ½⌉ − 1 per axis: the voxels between a cell and the farthest node its integration
     points (half a voxel from its centre) take, supports of s = a/h · ``enlarged`` voxels."""
-    s = np.broadcast_to(np.asarray(a_over_h, float), (3,)) * float(enlarged)
-    return np.ceil(s + 0.5 - 1e-9).astype(np.int64) - 1
+    return reach(np.broadcast_to(np.asarray(a_over_h, float), (3,)) * float(enlarged))
+
+
+def reach(support_voxels: np.ndarray) -> np.ndarray:
+    """c = ⌈s + ½⌉ − 1 (same shape as ``support_voxels``): for a node with a support of s voxels
+    along an axis, the voxels between it and the farthest cell whose integration points (half a
+    voxel from the cell's centre) it reaches."""
+    return np.ceil(np.asarray(support_voxels, float) + 0.5 - 1e-9).astype(np.int64) - 1
+
+
+def needed(ijk: np.ndarray, owned: np.ndarray, node_reach: np.ndarray, patch=(1, 1, 1)) -> tuple[np.ndarray, np.ndarray]:
+    """The integration cells and the nodes that the rows of the ``owned`` nodes need, node by node.
+
+    The row of an owned node I takes the cells within its reach c_I (:func:`reach`) and, through
+    the volumetric patches, every cell of their patches (``patch`` − 1 voxels further); a cell
+    takes every node J whose own reach c_J covers it. With every reach the model's largest this is
+    :func:`halo` at :func:`cell_depth` and :func:`halo_depth`; with a few enlarged supports it is less.
+
+    Parameters
+    ----------
+    ijk : (N, 3) int
+        Voxel indices of the nodes (cells sit at the nodes' voxels).
+    owned : (N,) bool
+    node_reach : (N, 3) int
+        c of every node per axis.
+    patch : (3,) int
+        Voxels of a volumetric patch per axis ((1, 1, 1) without patches).
+
+    Returns
+    -------
+    cells, nodes : (N,) bool
+        The cells (at the nodes' voxels) the owned rows need, and the nodes those cells need (the
+        owned nodes among them).
+    """
+    node_reach = np.asarray(node_reach, np.int64)
+    widen = np.broadcast_to(np.asarray(patch, np.int64), (3,)) - 1
+    cells = np.zeros(len(ijk), bool)
+    for c in np.unique(node_reach[owned], axis=0):
+        cells |= halo(ijk, owned & np.all(node_reach == c, axis=1), c + widen)
+    nodes = owned.copy()
+    for c in np.unique(node_reach, axis=0):
+        of_c = np.all(node_reach == c, axis=1)
+        nodes |= of_c & halo(ijk, cells, c)
+    return cells, nodes
 
 
 def cover_margin(a_over_h, enlarged: float = 1.0) -> np.ndarray:

@@ -3,7 +3,8 @@
 Under ``mpiexec -n P`` with a PETSc backend, :func:`build_distributed_system` cuts the model by
 recursive coordinate bisection (:func:`.partition.bisection_partition`) and each rank builds an
 ordinary :class:`~..system.MechanicalSystem` on its *held* nodes: its own nodes and every node
-within :func:`.partition.halo_depth` voxels of them. Everything that rank keeps — the RK shape
+their rows need (:func:`.partition.needed`: within :func:`.partition.halo_depth` voxels of them
+where supports are nominal, further beside the few enlarged ones). Everything that rank keeps — the RK shape
 functions and SCNI operators, the materials and their moduli, the stabilisation and penalty
 operators, the volumetric patches — is of the held nodes only. Its own nodes' rows of the residual
 and the tangent are exact: every integration cell and patch they need, and every node those cells'
@@ -34,7 +35,7 @@ from ..config import SolveConfig
 from ..scni import support_radius
 from ..system import MechanicalSystem, State, build_system, reference_moduli, rk_supports, solve_materials
 from .layout import Layout, PatchLayout
-from .partition import bisection_partition, cell_depth, cover_margin, halo, halo_depth
+from .partition import bisection_partition, cover_margin, halo, halo_depth, needed, reach
 
 _LOG = logging.getLogger(__name__)
 
@@ -96,7 +97,6 @@ def build_distributed_system(model: Model, cfg: SolveConfig, comm=None) -> tuple
     largest = mpi.allreduce(largest, op=MPI.MAX)
     if largest > 1.0 + 1e-9:
         held, supports, _ = held_part(model, cfg, owned, largest)
-    largest = max(largest, 1.0)
     counts = np.bincount(part, minlength=size)
     order = np.argsort(part, kind="stable")  # PETSc order: by rank, each rank's nodes in model order
     petsc_of = np.empty(n, np.int64)
@@ -110,7 +110,7 @@ def build_distributed_system(model: Model, cfg: SolveConfig, comm=None) -> tuple
     if enlarged:
         _LOG.warning("RK supports enlarged at %d of %d nodes to cover thin features", enlarged, n)
     beta = global_penalty_number(model, cfg, np.flatnonzero(owned), layout)
-    system, info = held_system(model, cfg, held, supports, beta, owned[held], largest)
+    system, info = held_system(model, cfg, held, supports, beta, owned[held])
     info.update(n_nodes=n, supports_enlarged=enlarged, ranks=size, owned_nodes=int(own.size), held_nodes=int(held.size))
     n_points = layout.sum(int(np.count_nonzero(owned[held][system.constraints.node])))
     info["n_constraint_points"] = int(n_points)
@@ -119,10 +119,14 @@ def build_distributed_system(model: Model, cfg: SolveConfig, comm=None) -> tuple
     return DistributedSystem(system, layout), info
 
 
-def _depths(cfg: SolveConfig, enlarged: float) -> tuple[np.ndarray, np.ndarray]:
-    """(cell depth, halo depth) in voxels for ``cfg``'s supports and patches, supports up to ``enlarged`` × nominal."""
-    patch = cfg.volumetric.patch if cfg.volumetric.method == "projected" else (1, 1, 1)
-    return cell_depth(cfg.support.a_over_h, patch, enlarged), halo_depth(cfg.support.a_over_h, patch, enlarged)
+def _patch(cfg: SolveConfig) -> tuple:
+    """Voxels of a volumetric patch per axis ((1, 1, 1) without patches)."""
+    return tuple(cfg.volumetric.patch) if cfg.volumetric.method == "projected" else (1, 1, 1)
+
+
+def _needed(model: Model, cfg: SolveConfig, ijk: np.ndarray, owned: np.ndarray, supports: np.ndarray):
+    """:func:`.partition.needed` for nodes at ``ijk`` with RK ``supports`` (n, 3) cm."""
+    return needed(ijk, owned, reach(supports / np.asarray(model.spacing, float)), _patch(cfg))
 
 
 def held_part(model: Model, cfg: SolveConfig, owned: np.ndarray, enlarged: float = 1.0) -> tuple[np.ndarray, np.ndarray, float]:
@@ -136,8 +140,9 @@ def held_part(model: Model, cfg: SolveConfig, owned: np.ndarray, enlarged: float
     Returns
     -------
     held : (n_held,) int
-        Model indices of the owned nodes and of every node within :func:`.partition.halo_depth`
-        voxels of them, ascending.
+        Model indices, ascending, of the owned nodes and of the nodes their rows need
+        (:func:`.partition.needed` with each node's support: within :func:`.partition.halo_depth`
+        voxels of them where every support is the largest, fewer where only some are enlarged).
     supports : (n_held, 3) float
         Their supports as :func:`..system.node_supports` gives them for the whole model (the
         coverage is computed over :func:`.partition.cover_margin` more voxels), cm.
@@ -145,25 +150,30 @@ def held_part(model: Model, cfg: SolveConfig, owned: np.ndarray, enlarged: float
         The largest enlargement among the supports of the covered nodes.
     """
     ijk = np.asarray(model.ijk)
-    depth = _depths(cfg, enlarged)[1]
+    a_h = cfg.support.a_over_h
+    depth = halo_depth(a_h, _patch(cfg), enlarged)
     held = np.flatnonzero(halo(ijk, owned, depth))
-    cover = np.flatnonzero(halo(ijk, owned, depth + cover_margin(cfg.support.a_over_h, enlarged)))
+    cover = np.flatnonzero(halo(ijk, owned, depth + cover_margin(a_h, enlarged)))
     with _quiet():  # the coverage of this part warns of its own enlargements: the caller counts the whole model's
         sup, _ = rk_supports(submodel(model, cover), cfg.support, corners=end_rule(cfg.penalty.at) == "vertices")
-    nominal = support_radius(model.spacing, cfg.support.a_over_h)
-    return held, sup[np.searchsorted(cover, held)], float(np.max(sup / nominal)) if sup.size else 1.0
+    largest = float(np.max(sup / support_radius(model.spacing, a_h))) if sup.size else 1.0
+    sup = sup[np.searchsorted(cover, held)]
+    if largest > enlarged * (1 + 1e-9):  # the caller asks again with the model's largest support
+        return held, sup, largest
+    keep = _needed(model, cfg, ijk[held], owned[held], sup)[1]
+    return held[keep], sup[keep], largest
 
 
 def held_system(model: Model, cfg: SolveConfig, held: np.ndarray, supports: np.ndarray, beta: float,
-                owned: np.ndarray, enlarged: float = 1.0) -> tuple[MechanicalSystem, dict]:
+                owned: np.ndarray) -> tuple[MechanicalSystem, dict]:
     """The :class:`..system.MechanicalSystem` of the nodes ``held`` of ``model`` with the whole
     model's ``supports`` (n_held, 3) cm and penalty number ``beta`` N/cm³, for the rows of its
-    ``owned`` (n_held,) bool nodes: the cells beyond :func:`.partition.cell_depth` of them are
-    inert (F = I), and points at the cut edge with a singular moment matrix get no shape functions."""
+    ``owned`` (n_held,) bool nodes: the cells their rows do not need (:func:`.partition.needed`)
+    are inert (F = I), and points at the cut edge with a singular moment matrix get no shape functions."""
     part = submodel(model, held)
     with _quiet():  # a part without an end set warns that the set is empty: not the whole model's news
         system, info = build_system(part, cfg, supports=supports, beta=beta, n_total=model.n_nodes, singular="empty")
-    system.inert = ~halo(part.ijk, owned, _depths(cfg, enlarged)[0])
+    system.inert = ~_needed(model, cfg, part.ijk, owned, supports)[0]
     return system, info
 
 

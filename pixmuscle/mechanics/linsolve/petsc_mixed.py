@@ -338,6 +338,7 @@ class PETScMixedSolver(PETScSolver):
             return
         PETSc = self.PETSc
         t0 = time.perf_counter()
+        self._release()  # the last system's objects (its tangent's moduli among them) before the new ones are made
         lay, held = system.layout, system.held
         if self._press is None:
             self._press = self._pressures(system)
@@ -375,7 +376,6 @@ class PETScMixedSolver(PETScSolver):
         isu, isp = A.getNestISs()[0]
         if self.assembled:
             isu.compose("nearnullspace", A00.getNearNullSpace())
-        self._release()
         ksp = PETSc.KSP().create(comm=self.comm)
         ksp.setOptionsPrefix(_PREFIX)
         ksp.setOperators(A)
