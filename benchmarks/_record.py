@@ -31,7 +31,6 @@ from __future__ import annotations
 import datetime as dt
 import os
 import platform
-import resource
 import shlex
 import subprocess
 import sys
@@ -117,18 +116,36 @@ def _children() -> dict[int, list[int]]:
     return out
 
 
+def _status_kb(pid: int | str, key: str) -> int:
+    """A ``/proc/PID/status`` entry in kB (``VmRSS``, ``VmHWM``); 0 where it cannot be read."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith(key + ":"):
+                    return int(line.split()[1])
+    except (OSError, ValueError):
+        pass
+    return 0
+
+
 def _pss_kb(pid: int) -> int:
     """Proportional set size of ``pid``, kB: its resident pages, each page shared by k processes
     counted 1/k (``/proc/PID/smaps_rollup``); its resident size where that is not readable."""
-    for path, key in ((f"/proc/{pid}/smaps_rollup", "Pss:"), (f"/proc/{pid}/status", "VmRSS:")):
-        try:
-            with open(path) as f:
-                for line in f:
-                    if line.startswith(key):
-                        return int(line.split()[1])
-        except (OSError, ValueError):
-            continue
-    return 0
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as f:
+            for line in f:
+                if line.startswith("Pss:"):
+                    return int(line.split()[1])
+    except (OSError, ValueError):
+        pass
+    return _status_kb(pid, "VmRSS")
+
+
+def own_peak_kb(pid: int | str = "self") -> int:
+    """The high-water mark of a process's resident memory since it started its program, kB
+    (``VmHWM``). Not ``ru_maxrss``: Linux keeps in that the size of the forked copy of the parent
+    that ran until ``exec``, so a small child of a large process reports the parent's size."""
+    return _status_kb(pid, "VmHWM")
 
 
 def tree_kb(root: int | None = None) -> int:
@@ -151,7 +168,7 @@ class TreeMemory:
     this module).
 
     A sample can miss a peak shorter than the interval; :func:`peak_rss_GB` therefore takes the
-    larger of the sampled peak and this process's own high-water mark (exact, ``RUSAGE_SELF``).
+    larger of the sampled peak and this process's own high-water mark (exact, :func:`own_peak_kb`).
     """
 
     def __init__(self, interval: float = SAMPLE_S):
@@ -183,9 +200,8 @@ def peak_rss_GB() -> float:
     """Peak memory of this process's tree, GB: the largest sampled sum of the proportional set sizes
     of this process and all its descendants (:class:`TreeMemory`: BoomerAMG workers, children and
     MPI ranks started by a child ``mpiexec`` included; pages shared after a fork counted once), or
-    this process's own high-water mark (``RUSAGE_SELF``) where that is larger."""
-    kb = max(_sampler.sample(), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
-    return round(kb / 1024**2, 2)  # Linux: ru_maxrss in kB
+    this process's own high-water mark (:func:`own_peak_kb`) where that is larger."""
+    return round(max(_sampler.sample(), own_peak_kb()) / 1024**2, 2)
 
 
 def command_line(argv: list[str] | None = None, script: str | None = None) -> str:
@@ -235,7 +251,7 @@ def run_child(argv: list[str], **popen) -> tuple[int, object, int]:
     -------
     exit_code : int
     usage : resource.struct_rusage
-        ``wait4``'s usage of the child.
+        ``wait4``'s usage of the child (its ``ru_maxrss`` is not its peak: :func:`own_peak_kb`).
     peak_kb : int
         The largest sampled memory of the child's tree (its BoomerAMG workers and Dask workers
         included), or the child's own high-water mark where that is larger, kB.
@@ -246,7 +262,7 @@ def run_child(argv: list[str], **popen) -> tuple[int, object, int]:
         pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
         if pid:
             break
-        peak = max(peak, tree_kb(proc.pid))
+        peak = max(peak, tree_kb(proc.pid), own_peak_kb(proc.pid))
         time.sleep(SAMPLE_S)
     proc.returncode = os.waitstatus_to_exitcode(status)
-    return proc.returncode, usage, max(peak, usage.ru_maxrss)
+    return proc.returncode, usage, peak

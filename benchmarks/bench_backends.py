@@ -5,7 +5,7 @@ Model: the 10,862-node fine model of ``configs/lower_leg_small.yaml`` (made by `
 configs/lower_leg_small.yaml --until coarsen`` when ``out/lower_leg_small/model.h5`` is missing), solved
 by ``pixmuscle solve`` with that config's solve section, 3 load steps (α 0 → 0.95), one backend per
 case. Recorded per case: wall time of the command, peak resident memory of every rank (each rank
-writes its own ``RUSAGE_SELF`` peak at exit) summed (``peak_rss_GB``) and the largest
+writes its own peak, ``VmHWM``, at exit) summed (``peak_rss_GB``) and the largest
 (``peak_rss_GB_per_rank_max``), ``ranks``, Newton and Krylov iterations, preconditioner builds,
 F_max at ``z_max``, the time estimate the solve prints at its start (:func:`pixmuscle.preflight.estimate_solve`)
 and the fields of :mod:`_record`.
@@ -40,12 +40,13 @@ CASES = ["mixed_amg:1", "direct:1", "petsc_mixed:1", "petsc_mixed:2"]
 def _rank_main(peak_file: str, argv: list[str]) -> None:
     """Run the CLI in this process and write this rank's peak resident memory (GB) at exit."""
     import atexit
-    import resource
 
     rank = os.environ.get("OMPI_COMM_WORLD_RANK", os.environ.get("PMI_RANK", "0"))
 
     def _write():
-        Path(f"{peak_file}.{rank}").write_text(str(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2))
+        with open("/proc/self/status") as f:  # VmHWM, not ru_maxrss, which keeps the size of the forked parent
+            kb = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
+        Path(f"{peak_file}.{rank}").write_text(str(kb / 1024**2))
 
     atexit.register(_write)
     from pixmuscle.cli import main

@@ -8,7 +8,7 @@ every setting at its default except the backend, ``petsc_mixed`` (the distribute
 :mod:`pixmuscle.mechanics.distributed`), through ``mpiexec -n P pixmuscle solve``.
 
 Recorded per case: ``ranks``, ``nodes``, the held and owned nodes of rank 0, the wall time of the
-command, each rank's own peak resident memory (``RUSAGE_SELF`` written at its exit; under
+command, each rank's own peak resident memory (``VmHWM`` written at its exit; under
 ``mpiexec`` there are no BoomerAMG worker processes) summed (``peak_rss_GB``) and the largest
 (``peak_rss_GB_per_rank_max``), Newton iterations per step, ``krylov_iterations_per_system``, F_max
 at ``z_max`` per step and the fields of :mod:`_record`. Four ranks on this 2-core machine are

@@ -404,7 +404,7 @@ def scaling() -> str:
                      f"{_load_text(c)} | {_made(c)} |")
     lines += ["", f"Record `{path}`; each row's command is in it, e.g. `.venv/bin/python benchmarks/bench_scaling.py "
                   "--cases 75k:2`. `petsc_mixed` through `mpiexec -n P pixmuscle solve`, every other setting at its "
-                  "default; α 0 → 0.95 in 10 load steps; peak per rank: each rank's own `RUSAGE_SELF` at its exit. "
+                  "default; α 0 → 0.95 in 10 load steps; peak per rank: each rank's own high-water mark at its exit (`VmHWM`; older rows: `RUSAGE_SELF`). "
                   "Serial `auto` rows: `pixmuscle solve` of the same model at the shipped defaults in one process, "
                   "its peak the largest sampled memory of its process tree (the BoomerAMG worker included)."]
     ratios = [f"`{c['size']}` on {c['ranks']} ranks {c['peak_rss_GB_per_rank_max'] / serial[c['size']]['peak_rss_GB']:.2f} ×, "

@@ -43,8 +43,14 @@ sys.exit(3)
 
 
 def test_a_child_tree_is_measured_with_its_descendants_and_shared_pages_once():
+    """The child of a large process is measured as itself (``ru_maxrss`` would report the parent's
+    size, which the fork copied until ``exec``), with its descendants, and a fork's shared pages once."""
+    import numpy as np
+
     record = _module("_record")
+    large = np.ones(600 * 2**20 // 8)  # this process is large when it starts the child
     code, usage, own = record.run_child(["-c", _TREE, "own"])
+    del large
     assert code == 3 and usage.ru_maxrss > 0
     assert 0.48 < own / 2**20 < 0.75  # 300 + 200 MiB (+ numpy's import in both) and no more
     code, _, shared = record.run_child(["-c", _TREE, "shared"])
