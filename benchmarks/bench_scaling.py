@@ -160,8 +160,8 @@ PREDICT = {"1M": (1.04, 85, (0.078125, 0.078125, 0.5), "the 295k leg's cross-sec
 def memory_model(data: dict, ranks: int = 8) -> dict:
     """Least-squares fit of the largest rank's peak (GB) against the nodes rank 0 held, over the rows of
     ``data``, and what it predicts for the legs of :data:`PREDICT` on ``ranks`` ranks (their held nodes
-    from the partition and halo of their voxel grid, with the halo of supports enlarged 1.56×, as
-    the synthetic legs' thin skin has them)."""
+    from the partition and the halo of nominal supports of their voxel grid: a rank holds the nodes its
+    rows need node by node, and the few supports enlarged beside thin features add little to that)."""
     import bench_solve
     import numpy as np
 
@@ -173,7 +173,7 @@ def memory_model(data: dict, ranks: int = 8) -> dict:
     slope, base = np.polyfit(held, peak, 1)
     out = {"base_GB": float(base), "kB_per_held_node": float(slope * 1024**2), "rows": [c["case"] for c in rows],
            "predictions": []}
-    depth = halo_depth(1.65, (2, 2, 3), 1.56)
+    depth = halo_depth(1.65, (2, 2, 3))
     for name, (scale, slices, spacing, what) in PREDICT.items():
         labels, _, _ = bench_solve.leg_labels(scale, slices, spacing)
         ijk = np.argwhere((labels > 0) & (labels != 4))
