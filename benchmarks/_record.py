@@ -116,7 +116,7 @@ def _children() -> dict[int, list[int]]:
     return out
 
 
-def _status_kb(pid: int | str, key: str) -> int:
+def status_kb(pid: int | str, key: str) -> int:
     """A ``/proc/PID/status`` entry in kB (``VmRSS``, ``VmHWM``); 0 where it cannot be read."""
     try:
         with open(f"/proc/{pid}/status") as f:
@@ -138,14 +138,14 @@ def _pss_kb(pid: int) -> int:
                     return int(line.split()[1])
     except (OSError, ValueError):
         pass
-    return _status_kb(pid, "VmRSS")
+    return status_kb(pid, "VmRSS")
 
 
 def own_peak_kb(pid: int | str = "self") -> int:
     """The high-water mark of a process's resident memory since it started its program, kB
     (``VmHWM``). Not ``ru_maxrss``: Linux keeps in that the size of the forked copy of the parent
     that ran until ``exec``, so a small child of a large process reports the parent's size."""
-    return _status_kb(pid, "VmHWM")
+    return status_kb(pid, "VmHWM")
 
 
 def tree_kb(root: int | None = None) -> int:

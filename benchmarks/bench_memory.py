@@ -37,18 +37,11 @@ import numpy as np
 import scipy.sparse as sp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _record import Run  # noqa: E402
+from _record import Run, status_kb  # noqa: E402
 from bench_solve import SIZES, leg_case  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "results" / "bench_memory.json"
 GB = 1024.0**3
-
-
-def _status_kb(key: str) -> int:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1])
-    return 0
 
 
 def _reset_peak() -> None:
@@ -132,8 +125,8 @@ def measure(size: str, depth: int = 4) -> dict:
         t = time.perf_counter()
         out = fn()
         phases.append({"phase": name, "wall_s": round(time.perf_counter() - t, 1),
-                       "rss_after_GB": round(_status_kb("VmRSS") / 1024**2, 3),
-                       "peak_GB": round(_status_kb("VmHWM") / 1024**2, 3)})
+                       "rss_after_GB": round(status_kb("self", "VmRSS") / 1024**2, 3),
+                       "peak_GB": round(status_kb("self", "VmHWM") / 1024**2, 3)})
         print(json.dumps({"size": size, **phases[-1]}), flush=True)
         return out
 
@@ -149,7 +142,7 @@ def measure(size: str, depth: int = 4) -> dict:
         phase("solve", lambda: solver.solve(state.r.ravel()))
     iterations = int(solver.info["iterations"])
     by_owner = owners({"model": model, "system": system, "state": state, "solver": solver}, depth=depth)
-    rss = _status_kb("VmRSS") * 1024.0
+    rss = status_kb("self", "VmRSS") * 1024.0
     top = {k: v for k, v in by_owner.items() if "." not in k and "[" not in k}
     floor = min(0.01 * GB, 0.002 * sum(top.values()))  # 10 MB, or 0.2 % of the owners on a small leg
     detail = {k: round(v / GB, 4) for k, v in sorted(by_owner.items(), key=lambda kv: -kv[1]) if v >= floor}
