@@ -20,7 +20,9 @@ measurement) gets these fields from :class:`Run`:
 ``peak_rss_GB``
     Peak memory of the benchmark's process tree, :func:`peak_rss_GB`: the largest sum over the
     process and all its descendants (the BoomerAMG workers and children included) of each one's
-    proportional set size, sampled every :data:`SAMPLE_S` seconds by :class:`TreeMemory`.
+    proportional set size, sampled by :class:`TreeMemory` (every :data:`SAMPLE_S` seconds, less often
+    where reading a large tree would take more than :data:`SAMPLER_SHARE` of a core), or the largest
+    own high-water mark of a process of the tree where that is larger.
 
 Rows made before the shipped defaults last changed are marked afterwards by
 ``benchmarks/mark_superseded.py`` (``"superseded"``), from :data:`DEFAULTS_CHANGES`.
@@ -97,8 +99,13 @@ def machine() -> dict:
             "processor": processor, "os": f"{platform.system()} {platform.release()}", "python": platform.python_version()}
 
 
-#: seconds between two samples of the process tree's memory (:class:`TreeMemory`)
+#: seconds between two samples of the process tree's memory (:class:`TreeMemory`), at least
 SAMPLE_S = 0.25
+#: the largest share of one core the sampling may take: reading a process's proportional set size walks
+#: its page tables (50 ms for a 13 GB process), so after a sample that took t seconds the sampler waits
+#: max(SAMPLE_S, t / SAMPLER_SHARE). Sampling a 13 GB solve every 0.25 s took 73 % of a core on this
+#: 2-core machine, and the solve it measured ran that much slower.
+SAMPLER_SHARE = 0.02
 
 
 def _children() -> dict[int, list[int]]:
@@ -148,33 +155,37 @@ def own_peak_kb(pid: int | str = "self") -> int:
     return status_kb(pid, "VmHWM")
 
 
-def tree_kb(root: int | None = None) -> int:
+def tree_kb(root: int | None = None) -> tuple[int, int]:
     """Memory of the process ``root`` (this one by default) and all its descendants now, kB: the sum
-    of their proportional set sizes (:func:`_pss_kb`), so that pages a fork shares are counted once.
-    The BoomerAMG workers that ``amg_processes`` spawns are descendants (of Open MPI's daemon, a
-    child of the run)."""
+    of their proportional set sizes (:func:`_pss_kb`), so that pages a fork shares are counted once,
+    and the largest own high-water mark among them (:func:`own_peak_kb`, a lower bound of the tree's
+    peak that no sampling interval can miss). The BoomerAMG workers that ``amg_processes`` spawns are
+    descendants (of Open MPI's daemon, a child of the run)."""
     root = os.getpid() if root is None else root
-    children, total, todo = _children(), 0, [root]
+    children, total, largest, todo = _children(), 0, 0, [root]
     while todo:
         pid = todo.pop()
         total += _pss_kb(pid)
+        largest = max(largest, own_peak_kb(pid))
         todo.extend(children.get(pid, ()))
-    return total
+    return total, largest
 
 
 class TreeMemory:
-    """The largest :func:`tree_kb` of this process tree since :meth:`start`, sampled every
-    :data:`SAMPLE_S` seconds by a daemon thread (one per process, started when a benchmark imports
-    this module).
+    """The peak memory of a process tree (``root`` and its descendants; default this process), kB,
+    sampled by a daemon thread from :meth:`start` until :meth:`stop`: the larger of the largest sampled
+    :func:`tree_kb` sum and the largest own high-water mark of a process of the tree.
 
-    A sample can miss a peak shorter than the interval; :func:`peak_rss_GB` therefore takes the
-    larger of the sampled peak and this process's own high-water mark (exact, :func:`own_peak_kb`).
+    The samples are :data:`SAMPLE_S` seconds apart, or further where reading the tree is slow, so that
+    the sampling takes at most :data:`SAMPLER_SHARE` of a core. A sample can miss a peak of the sum
+    shorter than the interval; the high-water marks cannot miss a process's own peak.
     """
 
-    def __init__(self, interval: float = SAMPLE_S):
-        self.interval = float(interval)
+    def __init__(self, root: int | None = None):
+        self.root = root
         self.peak_kb = 0
         self._thread = None
+        self._stop = threading.Event()
 
     def start(self) -> TreeMemory:
         if self._thread is None:
@@ -183,14 +194,23 @@ class TreeMemory:
             self._thread.start()
         return self
 
+    def stop(self) -> int:
+        """End the sampling (after one last sample) and return the peak, kB."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        return self.sample()
+
     def sample(self) -> int:
-        self.peak_kb = max(self.peak_kb, tree_kb())
+        self.peak_kb = max(self.peak_kb, *tree_kb(self.root))
         return self.peak_kb
 
     def _run(self) -> None:
-        while True:
-            time.sleep(self.interval)
+        wait = SAMPLE_S
+        while not self._stop.wait(wait):
+            t0 = time.perf_counter()
             self.sample()
+            wait = max(SAMPLE_S, (time.perf_counter() - t0) / SAMPLER_SHARE)
 
 
 _sampler = TreeMemory().start()
@@ -200,8 +220,8 @@ def peak_rss_GB() -> float:
     """Peak memory of this process's tree, GB: the largest sampled sum of the proportional set sizes
     of this process and all its descendants (:class:`TreeMemory`: BoomerAMG workers, children and
     MPI ranks started by a child ``mpiexec`` included; pages shared after a fork counted once), or
-    this process's own high-water mark (:func:`own_peak_kb`) where that is larger."""
-    return round(max(_sampler.sample(), own_peak_kb()) / 1024**2, 2)
+    the largest own high-water mark of a process of the tree (:func:`own_peak_kb`) where that is larger."""
+    return round(_sampler.sample() / 1024**2, 2)
 
 
 def command_line(argv: list[str] | None = None, script: str | None = None) -> str:
@@ -245,7 +265,7 @@ class Run:
 
 def run_child(argv: list[str], **popen) -> tuple[int, object, int]:
     """Run ``python ARGV`` (a script, ``-m module`` or ``-c code``) and wait for it, sampling the
-    memory of its process tree (:func:`tree_kb` of the child, every :data:`SAMPLE_S` seconds) as it runs.
+    memory of its process tree (:class:`TreeMemory` of the child) as it runs.
 
     Returns
     -------
@@ -254,15 +274,14 @@ def run_child(argv: list[str], **popen) -> tuple[int, object, int]:
         ``wait4``'s usage of the child (its ``ru_maxrss`` is not its peak: :func:`own_peak_kb`).
     peak_kb : int
         The largest sampled memory of the child's tree (its BoomerAMG workers and Dask workers
-        included), or the child's own high-water mark where that is larger, kB.
+        included), or the largest own high-water mark of a process of that tree where that is
+        larger, kB.
     """
     proc = subprocess.Popen([sys.executable, *argv], **popen)
-    peak = 0
-    while True:
-        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-        if pid:
-            break
-        peak = max(peak, tree_kb(proc.pid), own_peak_kb(proc.pid))
-        time.sleep(SAMPLE_S)
+    sampler = TreeMemory(proc.pid).start()
+    try:
+        _, status, usage = os.wait4(proc.pid, 0)
+    finally:
+        peak = sampler.stop()
     proc.returncode = os.waitstatus_to_exitcode(status)
     return proc.returncode, usage, peak
