@@ -468,7 +468,9 @@ def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
     """PARDISO's solution equals SciPy's sparse LU solve; its inertia equals numpy's eigenvalue count;
     after its factors are released it refuses to solve, and a new factorisation on the kept
     analysis gives the same solution. The pattern keeps an int32 gather map and a digest of the block
-    pattern (matched again, and not by another pattern); PARDISO reports the memory it holds."""
+    pattern (matched again, and not by another pattern); PARDISO reports the memory it holds. The
+    values are let go after a factorisation without perturbed pivots (a solve reads them only to
+    refine after those) and kept after one with them (a singular K), whose solves then refine."""
     from pixmuscle.mechanics.pardiso import PardisoError, PardisoLDLT, SymmetricPattern
     from pixmuscle.verify.mechanics import linear_stiffness
 
@@ -487,6 +489,7 @@ def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
         f = PardisoLDLT(pat)
         f.factorize(pat.values(Ks))
         assert f.info["memory_kB"] > 0 and f.info["peak_memory_kB"] >= f.info["memory_kB"]
+        assert f.info["perturbed_pivots"] == 0 and f._data.size == 1
         x = f.solve(r)
         x_ref = spla.spsolve(Ks.tocsc(), r)
         assert np.allclose(x, x_ref, rtol=1e-8, atol=1e-10 * np.abs(x_ref).max())
@@ -498,6 +501,14 @@ def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
         f.factorize(pat.values(Ks))
         assert np.allclose(f.solve(r), x, rtol=1e-12, atol=1e-14 * np.abs(x).max())
         f.free()
+    Kb = sp.bsr_matrix(K.tocsr(), blocksize=(3, 3))  # free rigid-body motions: zero pivots, perturbed
+    pat = SymmetricPattern(Kb)
+    f = PardisoLDLT(pat)
+    f.factorize(pat.values(Kb))
+    assert f.info["perturbed_pivots"] > 0 and f._data.size == pat.indices.size
+    b = K @ r[:, 0]  # consistent: K x = b has the solutions x = r + rigid-body motions
+    assert np.linalg.norm(K @ f.solve(b) - b) <= 1e-6 * np.linalg.norm(b)
+    f.free()
 
 
 @pytest.mark.skipif(not pardiso.available(), reason="MKL PARDISO not installed")
