@@ -5,11 +5,11 @@ Cases: ``configs/mg_young_old_small.yaml`` (the MG young/old cohort, small varia
 segmentation and models made once and shared (the shipped 18-case study would take longer than a
 benchmark step on a shared 2-core machine should). Every run is ``--force`` (all stages redone).
 
-* serial: ``pixmuscle run CONFIG --workers 0 --force`` in a child process; peak memory = the
-  child's maximum resident set size.
+* serial: ``pixmuscle run CONFIG --workers 0 --force`` in a child process; peak memory = that of the
+  child's process tree (:func:`_record.run_child`: sampled, its BoomerAMG workers included).
 * dask: ``run_pipeline(CONFIG, scheduler=...)`` on :func:`pixmuscle.runners.dask.local_cluster`
-  (2 worker processes, exactly what ``--workers 2`` starts); peak memory of each worker process
-  read on the worker (``ru_maxrss``) before the cluster closes.
+  (2 worker processes, exactly what ``--workers 2`` starts); peak memory of each worker process,
+  its own high-water mark (``VmHWM``) read on the worker before the cluster closes.
 
 Run:  .venv/bin/python benchmarks/bench_cohort.py [--part cohort study] [--mode serial dask]
 Each (part, mode) is merged into benchmarks/results/bench_cohort.json; bench_cohort.md is rewritten
@@ -20,14 +20,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _record import Run  # noqa: E402
+from _record import Run, own_peak_kb, run_child  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = {"cohort": ROOT / "configs" / "mg_young_old_small.yaml", "study": ROOT / "out" / "bench_cohort" / "study_young.yaml"}
@@ -48,19 +48,23 @@ def write_study_config() -> Path:
     return CONFIGS["study"]
 
 
-def _maxrss_mb() -> float:
-    """Peak resident set of this process, MB (Linux reports kB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+def _peak_mb() -> float:
+    """Peak resident memory of the process that runs it, MB: its high-water mark (``VmHWM``; not
+    ``ru_maxrss``, which keeps the size of a forked parent). Defined here, not imported, so that
+    Dask sends it to its workers by value."""
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) / 1024.0
 
 
 def run_serial(config: Path) -> dict:
-    t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "pixmuscle.cli", "-q", "run", str(config), "--workers", "0", "--force"],
-                          cwd=ROOT, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
-    return {"wall_s": wall, "exit": proc.returncode, "peak_rss_mb": {"process": peak},
-            "stderr_tail": proc.stderr[-2000:] if proc.returncode else ""}
+    with tempfile.TemporaryFile("w+") as err:  # not a pipe: the child could fill it while run_child waits
+        t0 = time.perf_counter()
+        code, _, peak_kb = run_child(["-m", "pixmuscle.cli", "-q", "run", str(config), "--workers", "0", "--force"],
+                                     cwd=ROOT, stdout=subprocess.DEVNULL, stderr=err, text=True)
+        wall = time.perf_counter() - t0
+        err.seek(0)
+        tail = err.read()[-2000:] if code else ""
+    return {"wall_s": wall, "exit": code, "peak_rss_mb": {"process": peak_kb / 1024.0}, "stderr_tail": tail}
 
 
 def run_dask(config: Path, workers: int = 2) -> dict:
@@ -74,9 +78,9 @@ def run_dask(config: Path, workers: int = 2) -> dict:
         ok = run_pipeline(config, force=True, scheduler=address)
         wall = time.perf_counter() - t0
         with Client(address) as client:
-            peaks = client.run(_maxrss_mb)
+            peaks = client.run(_peak_mb)
     return {"wall_s": wall, "exit": 0 if ok else 1,
-            "peak_rss_mb": {"client": _maxrss_mb(), **{f"worker {i}": v for i, v in enumerate(peaks.values())}},
+            "peak_rss_mb": {"client": own_peak_kb() / 1024.0, **{f"worker {i}": v for i, v in enumerate(peaks.values())}},
             "workers": workers}
 
 

@@ -33,18 +33,17 @@ import yaml
 HERE = pathlib.Path(__file__).parent
 OUT = HERE / "results"
 sys.path.insert(0, str(HERE.resolve()))
-from _record import Run  # noqa: E402
+from _record import Run, own_peak_kb  # noqa: E402
 
 
 def _rank_main(rss_dir: str, argv: list[str]) -> None:
     """Run the CLI in this process and write this rank's peak RSS (GB) on exit."""
     import atexit
-    import resource
 
     rank = os.environ.get("OMPI_COMM_WORLD_RANK", os.environ.get("PMI_RANK", "0"))
 
     def _rss():
-        gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+        gb = own_peak_kb() / 1024**2  # VmHWM: ru_maxrss keeps the size of the forked parent
         pathlib.Path(rss_dir, f"rss_{rank}.txt").write_text(f"{gb:.3f}")
 
     atexit.register(_rss)
