@@ -30,6 +30,7 @@ from . import newton as _newton
 from .boundary import SIGN_CONVENTION
 from .config import SolveConfig
 from .ellipticity import directions
+from .heap import release_free_heap
 from .linsolve import make_solver
 from .results import NodeEllipticity, Results, max_principal
 from .system import (
@@ -170,6 +171,7 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
 
         activation = activation_ramp(model, cfg.activation)
     system, info = _build(model, cfg)
+    release_free_heap()  # the build's temporaries: their heap pages would stay resident through the solve
     system.activation = activation
     root = getattr(system, "layout", None) is None or system.layout.rank == 0
     linsolver = make_solver(cfg.solver, model.X, ijk=model.ijk,

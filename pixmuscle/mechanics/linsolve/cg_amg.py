@@ -20,6 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...errors import SolverError, SolverGaveUp
+from ..heap import release_free_heap
 from .amg_processes import group
 from .base import BACKENDS, Iterative, LinearSolver, SolverMemory, built_from, memory_state, pcg
 from .fgmres import fgmres
@@ -153,6 +154,7 @@ class KrylovAMGSolver(LinearSolver):
     def _build(self):
         t0 = time.perf_counter()
         self._M = None  # release the old hierarchy before the new one is built (peak memory)
+        release_free_heap()  # and its pages, which the new one would not all reuse
         aggregates = voxel_aggregates(self.ijk, self.aggregate) if self.amg == "pyamg" else None
         if self.B is None:
             self.B = self._system.near_null_space()
@@ -165,6 +167,7 @@ class KrylovAMGSolver(LinearSolver):
         self.info["build_s"].append(time.perf_counter() - t0)
         self.policy.built()
         self._built_at = built_from(self._state)
+        release_free_heap()  # the stand-in's and the set-up's temporaries
 
     def _stand_in(self) -> sp.bsr_matrix:
         """The matrix the AMG hierarchy is built from: a filtered positive stand-in of the tangent."""

@@ -92,6 +92,7 @@ from dataclasses import field
 
 import numpy as np
 
+from ..heap import release_free_heap
 from .base import BACKENDS
 from .cg_amg import CGAMGOptions, KrylovAMGSolver
 from .fgmres import fgmres
@@ -223,6 +224,7 @@ class MixedBlockSolver(KrylovAMGSolver):
             self._press = space.free
             self._probe = probed_schur_diagonal(self._patch_divergence(), self._M, space.box[space.free],
                                                 self.probe_spacing)
+        release_free_heap()  # the region blocks' assemblers and the probe's temporaries
         self.info["setup_s"] += time.perf_counter() - t0
         self.info["build_s"][-1] += time.perf_counter() - t0
 

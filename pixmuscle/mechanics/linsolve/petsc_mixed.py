@@ -94,6 +94,7 @@ from dataclasses import field
 import numpy as np
 
 from ...errors import SolverError, SolverGaveUp
+from ..heap import release_free_heap
 from . import multigrid
 from .base import BACKENDS, SolverMemory, built_from, memory_state
 from .mixed_method import MixedBlocks, Pass, box_signs, probe_colours, probe_diagonal, refine
@@ -165,6 +166,7 @@ class DisplacementPreconditioner:
             self.amg = None
         if self.regions is not None:
             self.regions.release()
+        release_free_heap()  # the old multigrid's and factors' pages, which the new ones would not all reuse
         held, lay = system.held, system.layout
         A = _owned_block_rows(held.preconditioner_matrix(state.held, s.reach, volumetric="held"), lay, s.PETSc)
         self.amg = _multigrid(A, s, system, s.PETSc)
@@ -180,6 +182,7 @@ class DisplacementPreconditioner:
                 self.regions = held.region_solves(parts, lay.ijk)
                 s.info["region_nodes"] = int(lay.sum(sum(int(np.count_nonzero(owned[p])) for p in parts)))
             self.regions.update(state.held)
+        release_free_heap()  # the stand-in's and the region blocks' temporaries
 
     def setUp(self, pc) -> None:  # built by build(), not by PETSc
         pass
