@@ -18,7 +18,7 @@ analysis, factors and solve work space, and its peak, iparm[14..16]) is listed p
 
 Run: ``python benchmarks/bench_memory.py 75k 295k``; writes ``benchmarks/results/bench_memory.json`` (one
 row per size, GB per phase and per owner; a size measured again replaces its row, which ``--keep-before``
-moves to the record's ``before`` list for a before/after comparison). A smaller leg
+adds to the record's ``before`` list, the size's history, for a before/after comparison). A smaller leg
 (``5k``, ``10k``, ``20k``: the sizes of :mod:`bench_solve`) measures the same owners in under a minute;
 ``--out PATH`` writes such a trial elsewhere and ``--depth`` lists the owners deeper down their paths
 (``solver._M.regions.parts[0].asm.g`` at depth 6).
@@ -173,14 +173,14 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=OUT, help="results file (default: the records' %(default)s)")
     ap.add_argument("--depth", type=int, default=4, help="deepest attribute path listed per owner (default 4)")
     ap.add_argument("--keep-before", action="store_true",
-                    help="move the row a size replaces to the record's before list (a before/after comparison)")
+                    help="add the row a size replaces to the record's before list (the size's history: a before/after comparison)")
     a = ap.parse_args(argv)
     data = json.loads(a.out.read_text()) if a.out.exists() else {}
     old = data.get("cases", [])
     for size in a.sizes:
         row = measure(size, a.depth)
-        if a.keep_before:  # the row it replaces goes to ``before`` (the docs' before/after table)
-            data["before"] = [r for r in data.get("before", []) if r["size"] != size] + [r for r in old if r["size"] == size]
+        if a.keep_before:  # the row it replaces joins ``before``, the size's history (the docs' before/after table)
+            data["before"] = data.get("before", []) + [r for r in old if r["size"] == size]
         old = [r for r in old if r["size"] != size] + [row]
         data["cases"] = old
         a.out.write_text(json.dumps(data, indent=2) + "\n")

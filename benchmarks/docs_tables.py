@@ -317,10 +317,9 @@ def memory() -> str:
 
 
 def memory_change() -> str:
-    """The memory of the first Newton system before and after the last cuts (bench_memory.json ``before``)."""
+    """The memory of the first Newton system now and at each earlier record of it (bench_memory.json ``before``, oldest first)."""
     r = _load("benchmarks/results/bench_memory.json")
-    before = {c["size"]: c for c in r.get("before", [])}
-    if not before:
+    if not r.get("before"):
         return "No earlier record in `benchmarks/results/bench_memory.json` (key `before`)."
 
     def peak(c):
@@ -329,15 +328,13 @@ def memory_change() -> str:
     lines = ["| model | nodes | | peak, workers included | per unknown | held in numpy arrays | not held by numpy | made at |",
              "|---|---|---|---|---|---|---|---|"]
     for c in r["cases"]:
-        b = before.get(c["size"])
-        for label, x in (("before", b), ("after", c)):
-            if x is None:
-                continue
+        rows = [("before", b) for b in r["before"] if b["size"] == c["size"]] + [("now", c)]
+        for label, x in rows:
             lines.append(f"| `{c['size']}` | {c['nodes']:,} | {label} | {peak(x):.2f} GB | "
                          f"{x['kB_per_dof']['with_workers']:.1f} kB | {x['kB_per_dof']['numpy_owned']:.1f} kB | "
                          f"{x['not_numpy_GB']:.2f} GB | {_made(x)} |")
-    lines += ["", "Record `benchmarks/results/bench_memory.json`: both rows of a model made by `.venv/bin/python benchmarks/bench_memory.py SIZE` (`--keep-before` moves "
-                  "the row it replaces to the record's `before` list); the peak is the largest phase peak of the main "
+    lines += ["", "Record `benchmarks/results/bench_memory.json`: every row of a model made by `.venv/bin/python benchmarks/bench_memory.py SIZE` (`--keep-before` adds "
+                  "the row it replaces to the record's `before` list, oldest first); the peak is the largest phase peak of the main "
                   "process plus the BoomerAMG workers' peaks; per unknown: per displacement degree of freedom."]
     return "\n".join(lines)
 
