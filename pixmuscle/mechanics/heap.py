@@ -6,9 +6,11 @@ heap memory to the system only from the top of the heap. Pages freed in the midd
 and are counted in the process's memory until they are reused. The solve frees such memory in
 large amounts at a few points: after the system build (its temporaries), and when a preconditioner
 is rebuilt (the old hierarchy and region factors). Allocations after those points that do not fit
-the freed holes take new pages, so each rebuild raised the resident set: on the 74k leg the first
-rebuild of the AMG hierarchy and region factors left 0.5 GB of free heap resident (2.68 GB live,
-3.18 GB resident), and the resident set of the 295k sweep grew by 2.2 GB over its rebuilds.
+the freed holes take new pages: on the 74k leg the first rebuild of the AMG hierarchy and region
+factors left 0.5 GB of free heap resident (2.68 GB live, 3.18 GB resident). Released at those
+points, the resident set between the phases is what is live; the peak of a whole sweep moves
+less, since most of the freed memory is taken again by the next build (docs/performance.md,
+"Where the memory goes").
 
 :func:`release_free_heap` calls glibc's ``malloc_trim(0)``, which releases every whole free page
 of every arena (``madvise(MADV_DONTNEED)``): a few milliseconds. Where the C library is not glibc
