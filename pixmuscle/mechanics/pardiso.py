@@ -79,7 +79,8 @@ class PardisoError(RuntimeError):
 
 
 class SymmetricPattern:
-    """Fixed map from a BSR matrix with 3×3 blocks to the upper triangle in CSR, 0-based.
+    """Fixed map from a BSR matrix with square blocks (3×3: a node's displacement components; 1×1:
+    one component) to the upper triangle in CSR, 0-based.
 
     Built once per sparsity pattern; :meth:`values` gathers the upper-triangle entries of a
     matrix with the same pattern in CSR order without any sorting (one ``take``). What is kept:
@@ -90,37 +91,39 @@ class SymmetricPattern:
 
     Parameters
     ----------
-    K : scipy.sparse.bsr_matrix, (n, n) with (3, 3) blocks
+    K : scipy.sparse.bsr_matrix, (n, n) with (b, b) blocks
         Symmetric pattern (both triangles present), sorted block indices.
     """
 
     def __init__(self, K: sp.bsr_matrix):
         K = sp.bsr_matrix(K)
         K.sort_indices()
-        if K.blocksize != (3, 3):
-            raise ValueError(f"SymmetricPattern needs 3×3 blocks, got {K.blocksize}")
+        b = K.blocksize[0]
+        if K.blocksize != (b, b):
+            raise ValueError(f"SymmetricPattern needs square blocks, got {K.blocksize}")
+        bb = b * b
         self.n = K.shape[0]
         nb = K.indptr.size - 1
         itype = np.int32 if self.n < np.iinfo(np.int32).max else np.int64
         brow = np.repeat(np.arange(nb, dtype=itype), np.diff(K.indptr))
         bcol = K.indices.astype(itype, copy=False)
         ub = np.flatnonzero(bcol >= brow)  # blocks on or above the diagonal
-        ii, jj = (a.ravel() for a in np.meshgrid(np.arange(3), np.arange(3), indexing="ij"))
+        ii, jj = (a.ravel() for a in np.meshgrid(np.arange(b), np.arange(b), indexing="ij"))
         keep = (bcol[ub] > brow[ub])[:, None] | (jj >= ii)[None, :]  # whole off-diagonal blocks, upper half of diagonal ones
-        take = (ub[:, None].astype(np.int64) * 9 + np.arange(9))[keep]
-        row = (brow[ub][:, None] * 3 + ii[None, :].astype(itype))[keep]
+        take = (ub[:, None].astype(np.int64) * bb + np.arange(bb))[keep]
+        row = (brow[ub][:, None] * b + ii[None, :].astype(itype))[keep]
         del keep, brow, ub
         # entries are in (block, i, j) order with sorted block columns in each block row, so a
         # stable sort by scalar row alone leaves every row's columns ascending
         order = np.argsort(row, kind="stable")
-        self.take = take[order].astype(np.int32 if 9 * K.indices.size < np.iinfo(np.int32).max else np.int64)
+        self.take = take[order].astype(np.int32 if bb * K.indices.size < np.iinfo(np.int32).max else np.int64)
         del take
         if self.take.size >= np.iinfo(np.int32).max:
             raise ValueError(f"{self.take.size} non-zeros in the upper triangle: too many for 32-bit PARDISO indices")
         self.indptr = np.zeros(self.n + 1, np.int32)
         np.cumsum(np.bincount(row, minlength=self.n), out=self.indptr[1:])
         del row, order
-        self.indices = (bcol[self.take // 9] * 3 + (self.take % 3).astype(itype)).astype(np.int32)
+        self.indices = (bcol[self.take // bb] * b + (self.take % b).astype(itype)).astype(np.int32)
         self.blocks = _digest(K)
 
     def matches(self, K: sp.bsr_matrix) -> bool:

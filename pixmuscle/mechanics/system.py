@@ -603,14 +603,17 @@ class MechanicalSystem:
         vol = self.volumetric
         return constraint_regions(self, None if vol is None else vol.held[vol.patch_of])
 
-    def region_solves(self, regions: list[np.ndarray], ijk: np.ndarray, single: bool = False) -> RegionSolves:
-        """Exact solves of K_d on the node ``regions`` (:class:`.linsolve.subdomains.RegionSolves`:
+    def region_solves(self, regions: list[np.ndarray], ijk: np.ndarray, single: bool = False,
+                      coupling: str = "auto") -> RegionSolves:
+        """Solves of K_d on the node ``regions`` (:class:`.linsolve.subdomains.RegionSolves`:
         ``update(state)`` factorises, ``correct(r, z)`` applies the multiplicative correction);
         ``ijk`` (N, 3) int orders the factorisations; ``single``: single-precision PARDISO factors
-        refined in double precision at each solve."""
+        refined in double precision at each solve; ``coupling``: ``components`` (each displacement
+        component's diagonal block), ``full`` (the whole block) or ``auto`` (the whole block only
+        where a held single-node patch couples the components)."""
         from .linsolve.subdomains import RegionSolves
 
-        return RegionSolves(self, regions, ijk, single=single)
+        return RegionSolves(self, regions, ijk, single=single, coupling=coupling)
 
     def statistics(self) -> dict:
         """Totals for the results' ``info``: seconds and counts of the material evaluations

@@ -27,6 +27,7 @@ class AutoOptions(Iterative):
     amg: str = field(default="auto", metadata={"choices": AMG_CHOICES, "doc": "with mixed_amg: the multigrid, hypre BoomerAMG or pyamg (see cg_amg); auto takes hypre where petsc4py with hypre is installed"})
     amg_processes: int | Literal["auto"] = field(default="auto", metadata={"range": (1, None), "doc": "with mixed_amg: processes BoomerAMG runs on, this one and amg_processes − 1 spawned MPI workers; auto: 2 from 50,000 nodes on where the run has 2 cores of its own, else 1 (see cg_amg)"})
     region_precision: str = field(default="double", metadata={"choices": ("double", "single"), "doc": "with mixed_amg: precision of the region factors (see mixed_amg)"})
+    region_coupling: str = field(default="auto", metadata={"choices": ("auto", "components", "full"), "doc": "with mixed_amg: what is factorised on a region, each displacement component's block, the whole block, or auto (see mixed_amg)"})
     direct_max_dofs: int | None = field(default=None, metadata={"range": (0, None), "doc": "direct solver up to this many unknowns (3 per node), mixed_amg above (cg_amg with the nodal volumetric energy); default 45,000 (15k nodes) with PARDISO, 12,000 with SuperLU: where the iterative solver overtakes the factorisation (docs/performance.md)"})
 
 

@@ -100,15 +100,17 @@ class SuperLUFactor:
         Grid indices of the nodes.
     width : (3,) int
         Separator thickness per axis of the nested dissection, cells.
+    block : int
+        Unknowns per node (3: the displacement components; 1: one component).
     """
 
     name = "superlu"
 
-    def __init__(self, ijk=None, width=(4, 4, 4)):
+    def __init__(self, ijk=None, width=(4, 4, 4), block: int = 3):
         self.perm = None
         if ijk is not None:
             order = nested_dissection(ijk, width)
-            self.perm = (3 * order[:, None] + np.arange(3)).ravel()
+            self.perm = (block * order[:, None] + np.arange(block)).ravel()
         self.level = 0 if self.perm is not None else 2
         self.definite = False  # SuperLU gives no inertia: Krylov reuse uses GMRES
         self.info: dict = {}
@@ -164,12 +166,13 @@ class PardisoFactor:
 
     name = "pardiso"
 
-    def __init__(self, ijk=None, width=None, single: bool = False):  # the ordering is PARDISO's own
+    def __init__(self, ijk=None, width=None, single: bool = False, block: int = 3):  # the ordering is PARDISO's own
         from .. import pardiso
 
         if not pardiso.available():
             raise ValueError(PARDISO_MISSING)
         self.single = bool(single)
+        self.block = int(block)
         self.definite = False
         self.info: dict = {"analysis_s": 0.0}
         self._pattern = None
@@ -180,8 +183,9 @@ class PardisoFactor:
 
         if callable(K):
             K = K()
-        if K.format != "bsr" or K.blocksize != (3, 3):
-            K = sp.bsr_matrix(K, blocksize=(3, 3))
+        b = self.block
+        if K.format != "bsr" or K.blocksize != (b, b):
+            K = sp.bsr_matrix(K, blocksize=(b, b))
         if self._pattern is None or not self._pattern.matches(K):
             if self._ldlt is not None:
                 self._ldlt.free()
@@ -209,6 +213,62 @@ class PardisoFactor:
 
     def escalate(self) -> bool:
         return False
+
+
+class ComponentFactors:
+    """Factors of the three displacement components' diagonal blocks of a 3×3-block matrix.
+
+    K (3n × 3n, BSR with 3×3 node blocks) is approximated by blockdiag(K_xx, K_yy, K_zz), each
+    n × n block (one component's rows and columns) factorised on its own by an engine made with
+    ``block=1``. The factors of the three have the nodes' graph, not the 3×-wider graph of the
+    coupled unknowns: about a third of the entries of K's factor (each block a ninth), in a
+    third of the memory. This is not a solve of K: it is the stand-in of a preconditioner, exact
+    where K is block-diagonal by component (a penalty on one displacement component, a scalar
+    mass term) and leaving the couplings between components to whatever it is combined with.
+
+    Parameters
+    ----------
+    engine : callable
+        Makes one engine, ``engine(block=1)`` (:data:`ENGINES` with its keywords bound).
+    """
+
+    def __init__(self, engine):
+        self.parts = [engine(block=1) for _ in range(3)]
+        self.info: dict = {}
+
+    @property
+    def definite(self) -> bool:
+        return all(f.definite for f in self.parts)
+
+    def factorize(self, K) -> None:
+        if callable(K):
+            K = K()
+        K = sp.bsr_matrix(K, blocksize=(3, 3))
+        n = K.shape[0] // 3
+        blocks = [sp.bsr_matrix((np.ascontiguousarray(K.data[:, j:j + 1, j:j + 1]), K.indices, K.indptr), shape=(n, n))
+                  for j in range(3)]
+        del K  # only the three diagonal blocks' values stay through the factorisations
+        for j, f in enumerate(self.parts):
+            B, blocks[j] = blocks[j], None
+            f.factorize(B)
+            del B
+        infos = [f.info for f in self.parts]
+        self.info = {k: sum(i.get(k, 0) for i in infos) for k in ("factor_nnz", "memory_kB", "analysis_s", "negative_pivots")}
+        self.info["peak_memory_kB"] = max(i.get("peak_memory_kB", 0) for i in infos)
+
+    def solve(self, r: np.ndarray) -> np.ndarray:
+        r = np.asarray(r, float)
+        x = np.empty_like(r)
+        for j, f in enumerate(self.parts):
+            x[j::3] = f.solve(np.ascontiguousarray(r[j::3]))
+        return x
+
+    def release(self) -> None:
+        for f in self.parts:
+            f.release()
+
+    def escalate(self) -> bool:
+        return any([f.escalate() for f in self.parts])
 
 
 #: direct engines by name (``solve.solver.engine``)

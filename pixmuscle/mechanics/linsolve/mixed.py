@@ -98,7 +98,7 @@ from .cg_amg import CGAMGOptions, KrylovAMGSolver
 from .fgmres import fgmres
 from .mixed_method import BlockTriangular, MixedBlocks, MixedOperator, Pass, probed_schur_diagonal, refine
 from .multigrid import drop_weak_blocks
-from .subdomains import CorrectedVCycle
+from .subdomains import COUPLINGS, CorrectedVCycle
 
 _LOG = logging.getLogger(__name__)
 
@@ -113,6 +113,7 @@ class MixedAMGOptions(CGAMGOptions):
     schur: str = field(default="probed", metadata={"choices": ("probed", "mass"), "doc": "diagonal Schur approximation: `probed`, the diagonal of G M Gᵀ (M the displacement block's preconditioner) by probing with probe_spacing³ colours of the patch grid at each preconditioner build; `mass`, c/(μ_p V_p) with c = schur_scale"})
     probe_spacing: int = field(default=3, metadata={"range": (2, None), "doc": "with schur: probed, same-colour patches of the probe are this many patch boxes apart (spacing³ colours, as many V-cycles at each preconditioner build)"})
     region_solves: bool = field(default=True, metadata={"doc": "after each V-cycle, solve the displacement block exactly on the node regions of the boundary conditions (the supports of their constraint points: end slabs, bone surfaces), where the stiff penalty couplings live (linsolve/subdomains.py)"})
+    region_coupling: str = field(default="auto", metadata={"choices": ("auto", "components", "full"), "doc": "with region_solves: what is factorised on a region: `components`, each displacement component's diagonal block of K_d (x–x, y–y, z–z) on its own, the couplings between components left to the multigrid cycle before it (the penalty rows, which are per component, are still solved exactly), in about a third of the memory of `full`, the whole 3 × 3-coupled block; `auto`, the whole block on a region that reaches a held single-node patch (volumetric.held: own, whose K-scaled volumetric term couples the components), each component's block elsewhere (docs/performance.md, region solves)"})
     region_precision: str = field(default="double", metadata={"choices": ("double", "single"), "doc": "with region_solves and PARDISO: the region factors in `double` precision, or in `single` (their values in half the memory, PARDISO iparm[27]; slower: each solve is refined) with every region solve refined in double precision against the block's float64 values to 10⁻¹² (pardiso.py)"})
     drop_tol: float = field(default=0.0, metadata={"range": (0, None), "doc": "the multigrid's stand-in leaves out every off-diagonal node block weaker than drop_tol times the geometric mean of its two diagonal blocks (Frobenius norms; linsolve/multigrid.py drop_weak_blocks); 0 (default) keeps them all: the stand-in is then positive definite; leaving blocks out can make it indefinite and the multigrid a worse preconditioner"})
 
@@ -143,6 +144,10 @@ class MixedBlockSolver(KrylovAMGSolver):
     region_precision : {"double", "single"}
         Precision of the PARDISO factors of the regions (single: refined in double precision
         at each solve, :class:`~..pardiso.PardisoLDLT`).
+    region_coupling : {"auto", "components", "full"}
+        What is factorised on a region: each displacement component's diagonal block of K_d
+        (:class:`.factorization.ComponentFactors`), the whole block, or (auto) the whole block
+        only where a held single-node patch couples the components (:class:`.subdomains.RegionSolves`).
     drop_tol : float
         The multigrid's stand-in leaves out the off-diagonal node blocks weaker than this
         (:func:`.multigrid.drop_weak_blocks`); 0 keeps them all, and only then is the stand-in
@@ -158,7 +163,7 @@ class MixedBlockSolver(KrylovAMGSolver):
 
     def __init__(self, X, ijk, rtol: float = 1e-8, maxiter: int = 2000, schur_scale: float = 0.5, restart: int = 200,
                  schur: str = "probed", region_solves: bool = True, probe_spacing: int = 3, drop_tol: float = 0.0,
-                 rebuild_cost: int = 40, region_precision: str = "double", **kw):
+                 rebuild_cost: int = 40, region_precision: str = "double", region_coupling: str = "auto", **kw):
         super().__init__(X, ijk, rtol=rtol, maxiter=maxiter, rebuild_cost=rebuild_cost, **kw)
         self.drop_tol = drop_tol
         self.schur_scale = schur_scale
@@ -167,6 +172,9 @@ class MixedBlockSolver(KrylovAMGSolver):
         if region_precision not in ("double", "single"):
             raise ValueError(f"region_precision must be 'double' or 'single', got {region_precision!r}")
         self.region_precision = region_precision
+        if region_coupling not in COUPLINGS:
+            raise ValueError(f"region_coupling must be one of {COUPLINGS}, got {region_coupling!r}")
+        self.region_coupling = region_coupling
         self.schur = schur
         self.probe_spacing = probe_spacing
         self._regions = None
@@ -216,7 +224,8 @@ class MixedBlockSolver(KrylovAMGSolver):
         if self.region_solves:
             if self._regions is None:
                 self._regions = self._system.region_solves(self._system.stiff_regions(), self.ijk,
-                                                           single=self.region_precision == "single")
+                                                           single=self.region_precision == "single",
+                                                           coupling=self.region_coupling)
                 self.info["region_nodes"] = self._regions.n_nodes
             self._regions.update(self._state)
             self._M = CorrectedVCycle(self._M, self._regions)

@@ -80,8 +80,12 @@ class SystemOperator(Protocol):
         """Node sets (sorted (n_i,) int, may overlap) of the stiff rank-one couplings of the
         boundary conditions and held single-node patches, to be solved exactly after a V-cycle."""
 
-    def region_solves(self, regions: list[np.ndarray], ijk: np.ndarray, single: bool = False):
-        """Exact solves of K_d on ``regions``: an object with ``update(state)`` (factorise),
+    def region_solves(self, regions: list[np.ndarray], ijk: np.ndarray, single: bool = False,
+                      coupling: str = "auto"):
+        """Solves of K_d on ``regions``: an object with ``update(state)`` (factorise),
         ``correct(r, z)`` (the multiplicative correction z ← z + R_i K_i⁻¹ R_iᵀ (r − K_d z)),
         ``release()`` and ``n_nodes``; ``ijk`` (N, 3) int orders the factorisations; ``single``:
-        single-precision PARDISO factors, each solve refined in double precision."""
+        single-precision PARDISO factors, each solve refined in double precision; ``coupling``:
+        K_i is each displacement component's diagonal block (``components``), the whole block
+        (``full``), or the whole block only where a held single-node patch couples the
+        components (``auto``)."""

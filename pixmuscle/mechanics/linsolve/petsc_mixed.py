@@ -101,6 +101,7 @@ from .mixed_method import MixedBlocks, Pass, box_signs, probe_colours, probe_dia
 from .petsc import DEFAULT_OPTIONS as CONDENSED_OPTIONS
 from .petsc import PETScOptions, PETScSolver, set_options
 from .rebuild import RebuildPolicy
+from .subdomains import COUPLINGS
 
 #: PETSc options of the mixed solve unless ``petsc_options`` sets them (prefix ``pixmuscle_mixed_``).
 #: GMRES preconditioned on the right, as ``mixed_amg``'s: the preconditioner (one V-cycle, exact region
@@ -140,6 +141,7 @@ class PETScMixedOptions(PETScOptions):
     schur: str = field(default="probed", metadata={"choices": ("probed", "mass"), "doc": "diagonal Schur approximation: `probed`, the diagonal of G M Gᵀ (M the displacement split's preconditioner) by probing with probe_spacing³ colours of the patch grid at each preconditioner build (as mixed_amg); `mass`, c/(μ_p V_p) with c = schur_scale"})
     probe_spacing: int = field(default=3, metadata={"range": (2, None), "doc": "with schur: probed, same-colour patches of the probe are this many patch boxes apart (spacing³ colours, as many applications of the displacement preconditioner per build)"})
     region_solves: bool = field(default=True, metadata={"doc": "after each multigrid cycle on the displacement block, solve it exactly on the node regions of the boundary conditions (the region solves of mixed_amg, PARDISO or SuperLU, each rank on the part of each region among its own nodes), where the penalty couplings, K-scaled with the default penalty number, live"})
+    region_coupling: str = field(default="auto", metadata={"choices": ("auto", "components", "full"), "doc": "as mixed_amg's: what is factorised on a region, each displacement component's diagonal block of K_d, the whole block, or (auto) the whole block only where a held single-node patch couples the components"})
     rebuild_cost: int = field(default=40, metadata={"range": (1, None), "doc": "as mixed_amg's: what a build of the displacement preconditioner (multigrid, region factors, probed Schur diagonal) costs in Krylov iterations; it is kept across Newton systems and rebuilt once the iterations beyond its rate right after the build add up to this many (linsolve/rebuild.py)"})
     give_up: float = field(default=4.0, metadata={"gt": 0, "doc": "as mixed_amg's: a solve with a preconditioner that has not yet converged a solve stops after give_up × (the last measured iterations per decade) × decades + rebuild_cost iterations"})
     reach: int = field(default=2, metadata={"range": (1, 3), "doc": "the multigrid's stand-in holds the blocks of node pairs at most this many voxels apart (as mixed_amg's)"})
@@ -179,7 +181,7 @@ class DisplacementPreconditioner:
                 near = np.flatnonzero(halo(lay.ijk, owned, REGION_OVERLAP))  # own nodes and the overlap
                 parts = [np.intersect1d(nodes, near, assume_unique=True) for nodes in held.stiff_regions()
                          if np.any(owned[nodes])]
-                self.regions = held.region_solves(parts, lay.ijk)
+                self.regions = held.region_solves(parts, lay.ijk, coupling=s.region_coupling)
                 s.info["region_nodes"] = int(lay.sum(sum(int(np.count_nonzero(owned[p])) for p in parts)))
             self.regions.update(state.held)
         release_free_heap()  # the stand-in's and the region blocks' temporaries
@@ -271,6 +273,9 @@ class PETScMixedSolver(PETScSolver):
     region_solves : bool
         Displacement split: the multigrid cycle then exact solves on the boundary-condition regions
         (:class:`DisplacementPreconditioner`); without, the multigrid alone.
+    region_coupling : {"auto", "components", "full"}
+        What the region solves factorise: each displacement component's diagonal block of K_d, or
+        the whole block (as ``mixed_amg``'s).
     rebuild_cost, give_up : float
         The rebuild rule of the displacement preconditioner (:class:`.rebuild.RebuildPolicy`).
     reach : int
@@ -281,7 +286,7 @@ class PETScMixedSolver(PETScSolver):
 
     def __init__(self, X=None, ijk=None, rtol: float = 1e-10, maxiter: int = 2000, options: dict | None = None,
                  schur_scale: float = 0.5, region_solves: bool = True, schur: str = "probed", probe_spacing: int = 3,
-                 rebuild_cost: int = 40, give_up: float = 4.0, reach: int = 2):
+                 rebuild_cost: int = 40, give_up: float = 4.0, reach: int = 2, region_coupling: str = "auto"):
         super().__init__(X, ijk, rtol=rtol, maxiter=maxiter, options=options)
         self.user_options = dict(options or {})
         # the assembled rows of K_d only for a PETSc PC of the displacement split named in petsc_options
@@ -297,6 +302,9 @@ class PETScMixedSolver(PETScSolver):
         self.schur = schur
         self.probe_spacing = int(probe_spacing)
         self.region_solves = bool(region_solves)
+        if region_coupling not in COUPLINGS:
+            raise ValueError(f"region_coupling must be one of {COUPLINGS}, got {region_coupling!r}")
+        self.region_coupling = region_coupling
         self.reach = int(reach)
         self.policy = RebuildPolicy(rebuild_cost, give_up, maxiter)
         self._M = None if self.assembled else DisplacementPreconditioner(self)
@@ -313,7 +321,7 @@ class PETScMixedSolver(PETScSolver):
         return cls(X, ijk, rtol=opts.rtol, maxiter=opts.maxiter, options=dict(opts.petsc_options),
                    schur_scale=opts.schur_scale, region_solves=opts.region_solves, schur=opts.schur,
                    probe_spacing=opts.probe_spacing, rebuild_cost=opts.rebuild_cost, give_up=opts.give_up,
-                   reach=opts.reach)
+                   reach=opts.reach, region_coupling=opts.region_coupling)
 
     @property
     def memory_tag(self) -> str:

@@ -24,6 +24,7 @@ Partial Differential Equations*, Cambridge University Press, 1996, ch. 1 (multip
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 import scipy.sparse as sp
@@ -31,7 +32,11 @@ import scipy.sparse as sp
 from ..assembly import strong_entries
 from ..rows import RowAssembler
 from ..tangent import RowProduct, RowSubset
-from .factorization import ENGINES, engine_name
+from .factorization import ENGINES, ComponentFactors, engine_name
+
+#: what a region solve factorises: each displacement component's block, or the whole block, or
+#: (auto) the whole block where held single-node patches couple the components, else each one's
+COUPLINGS = ("auto", "components", "full")
 
 #: a node enters the region of a constraint point where its shape function there is at least this
 #: fraction of the point's largest; 0: every node of the point's support
@@ -103,16 +108,29 @@ class RegionSolves:
     single : bool
         With PARDISO: single-precision factors (PARDISO holds 0.32 GB instead of 0.44 on the 21k leg),
         each solve refined in double precision (:class:`~..pardiso.PardisoLDLT`); SuperLU ignores it.
+    coupling : {"auto", "components", "full"}
+        What is factorised on a region: ``components``, each displacement component's diagonal
+        block K_xx, K_yy, K_zz on its own (:class:`.factorization.ComponentFactors`), the
+        couplings between components left to the V-cycle; ``full``, the whole block; ``auto``,
+        the whole block on a region that reaches the gradient support of a held single-node
+        patch (its K-scaled volumetric term couples the components), each component's elsewhere.
+        The penalty rows are per component and so are solved exactly by all three.
     """
 
-    def __init__(self, system, regions, ijk, engine: str = "auto", single: bool = False):
+    def __init__(self, system, regions, ijk, engine: str = "auto", single: bool = False,
+                 coupling: str = "auto"):
+        if coupling not in COUPLINGS:
+            raise ValueError(f"region coupling must be one of {COUPLINGS}, got {coupling!r}")
         self.system = system
         self.parts = []
         name = engine_name(engine)
         extra = {"single": single} if name == "pardiso" else {}
+        coupled = _volumetric_reach(system) if coupling == "auto" else None
         for nodes in regions:
             dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
-            factor = ENGINES[name](ijk=np.asarray(ijk)[nodes], width=(4, 4, 4), **extra)
+            engine_of = functools.partial(ENGINES[name], ijk=np.asarray(ijk)[nodes], width=(4, 4, 4), **extra)
+            whole = coupling == "full" or (coupled is not None and bool(coupled[nodes].any()))
+            factor = engine_of() if whole else ComponentFactors(engine_of)
             stab = system.stab.rows(nodes) if system.stab is not None else None
             pen = [RowSubset(P, nodes) for P in system.penalty]
             self.parts.append(_Region(nodes, dofs, None, factor, RowProduct(system.product_form, nodes), stab, pen))
@@ -147,6 +165,19 @@ class RegionSolves:
         for part in self.parts:
             out[part.dofs] += part.factor.solve(r[part.dofs] - part.apply(out.reshape(-1, 3)).ravel())
         return out
+
+
+def _volumetric_reach(system) -> np.ndarray | None:
+    """Nodes (N,) bool in the gradient supports of the held single-node patches, whose K-scaled
+    volumetric terms stay in K_d and couple the displacement components; None without any."""
+    vol = getattr(system, "volumetric", None)
+    if vol is None or not np.any(vol.held):
+        return None
+    held = np.flatnonzero(vol.held[vol.patch_of])
+    out = np.zeros(vol.patch_of.shape[0], bool)
+    for Gj in system.scni.G:
+        out[sp.csr_matrix(Gj)[held].indices] = True
+    return out
 
 
 def _region_block(system, part, state):
