@@ -61,6 +61,7 @@ DEFAULTS_CHANGES: list[tuple[str, str, str]] = [
     ("bb27ce9", "2026-12-05T02:37:37+00:00", "the multigrid stand-in's cut rows keep their first moments"),
     ("f038e9d", "2026-12-05T05:15:59+00:00", "BoomerAMG strength threshold 0.25 instead of 0.5"),
     ("a1f5054", "2026-12-05T15:33:57+00:00", "mixed_amg rebuilds its hierarchy at 40 FGMRES iterations of excess (was 100)"),
+    ("9f2cf06", "2026-12-07T13:53:48+00:00", "region solves factorise each displacement component's block (region_coupling: auto)"),
 ]
 
 

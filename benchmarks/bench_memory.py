@@ -1,8 +1,9 @@
 """Where the memory of a solve goes: the first Newton system of the SYNTHETIC leg at the shipped defaults,
-phase by phase and owner by owner.
+phase by phase and owner by owner, each size in a process of its own.
 
 Phases, in the order a solve runs them: the model (labels → nodes), the system (RK shape functions, SCNI
-and stabilisation operators, penalty, pressure patches: ``build_system``), the first state (deformation,
+and stabilisation operators, penalty, pressure patches: ``build_system``, its freed heap pages then given
+back as the solve does), the first state (deformation,
 stress and material moduli at α = 0.095), the linear solver's set-up (the multigrid stand-in, BoomerAMG,
 region factors, the Schur probe: ``prepare``) and one mixed solve (its Krylov vectors). For each phase:
 the resident memory after it and its own peak (the kernel's high-water mark, reset before the phase through
@@ -113,9 +114,15 @@ def owners(roots: dict, depth: int = 4) -> dict[str, int]:
 
 
 def measure(size: str, depth: int = 4) -> dict:
+    from pixmuscle.mechanics.heap import release_free_heap
     from pixmuscle.mechanics.linsolve import make_solver
     from pixmuscle.mechanics.linsolve.amg_processes import workers_peak_rss_kb
     from pixmuscle.mechanics.solve import build_system
+
+    def build(model, cfg):  # as the solve builds it: the build's freed heap pages go back to the system
+        out = build_system(model, cfg)
+        release_free_heap()
+        return out
 
     run = Run(defaults=True)
     phases = []
@@ -131,7 +138,7 @@ def measure(size: str, depth: int = 4) -> dict:
         return out
 
     model, cfg = phase("model", lambda: leg_case(size, None))
-    system, _ = phase("system", lambda: build_system(model, cfg))
+    system, _ = phase("system", lambda: build(model, cfg))
     state = phase("first state", lambda: system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.095))
     width = 2 * np.floor(np.asarray(cfg.support.a_over_h) + 0.5).astype(int)
     solver = make_solver(cfg.solver, model.X, ijk=model.ijk, width=width)
@@ -175,6 +182,14 @@ def main(argv=None) -> int:
     ap.add_argument("--keep-before", action="store_true",
                     help="add the row a size replaces to the record's before list (the size's history: a before/after comparison)")
     a = ap.parse_args(argv)
+    if len(a.sizes) > 1:  # each size in a process of its own: what one leaves on the heap is not the next one's
+        import subprocess
+
+        flags = (["--out", str(a.out)] if a.out != OUT else []) + (["--depth", str(a.depth)] if a.depth != 4 else [])
+        flags += ["--keep-before"] if a.keep_before else []
+        for size in a.sizes:
+            subprocess.run([sys.executable, __file__, size, *flags], check=True)
+        return 0
     data = json.loads(a.out.read_text()) if a.out.exists() else {}
     old = data.get("cases", [])
     for size in a.sizes:

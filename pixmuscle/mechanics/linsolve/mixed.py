@@ -30,8 +30,8 @@ iterations stay flat. With ``volumetric.held: patch`` every patch pressure is an
 The preconditioner. M_A⁻¹ is one AMG V-cycle on K_d (the hierarchy of ``cg_amg``, built from its
 positive definite stand-in on the ±2-voxel pattern, :meth:`~.operator.SystemOperator.preconditioner_matrix`)
 followed by
-exact sparse solves of K_d on the node regions of the boundary conditions (``region_solves``,
-:mod:`.subdomains`): the penalty rows of the end faces and bone surfaces couple every node in the
+sparse solves of K_d on the node regions of the boundary conditions (``region_solves``,
+:mod:`.subdomains`; by default each displacement component's diagonal block, ``region_coupling``): the penalty rows of the end faces and bone surfaces couple every node in the
 support of a constraint point, which a point smoother cannot reduce; a multiplicative Schwarz
 correction on those thin regions (end-face slabs, bone surfaces) takes them. The diagonal of
 G M_A⁻¹ Gᵀ in Ŝ is estimated by probing with 27 colours of the patch grid (``schur: probed``, the
@@ -43,7 +43,7 @@ residual, in 31, 32 and 32 iterations at K/μ ≈ 95, 951 and 9,506 (5,460 nodes
 with ``schur: mass`` and the condensed stop, an earlier version), in 34 on 21,169 nodes, 41 on
 73,753 and 46 on the 295,073 of the 0.078-cm pixels at K/μ ≈ 951 (the git history of docs/performance.md).
 
-GMRES. The preconditioner — one V-cycle with fixed sweeps, exact region solves, a diagonal Ŝ — is
+GMRES. The preconditioner — one V-cycle with fixed sweeps, region solves with fixed factors, a diagonal Ŝ — is
 one fixed linear operator, so GMRES preconditioned from the right needs no basis of preconditioned
 directions (flexible GMRES keeps one): the update is M (V y) (:func:`.fgmres.fgmres` with
 ``flexible=False``), the same iterates for half the basis memory (the two bases held 1.5 GB in the longest solve

@@ -1,4 +1,4 @@
-r"""Exact solves on the stiff regions of the displacement block: a correction after the V-cycle.
+r"""Solves on the stiff regions of the displacement block: a correction after the V-cycle.
 
 The penalty rows of the boundary conditions, β Ψ(x_c)ᵀ w_c Ψ(x_c) with β the stiffness of a
 cell's bulk, couple every node in the support of a constraint point x_c; the single-node patches
@@ -11,9 +11,18 @@ exactly. The preconditioner of K_d is then
 
     z ← M_A r,    then for each region i:  z ← z + R_i K_i⁻¹ R_iᵀ (r − K_d z)
 
-(one V-cycle, then exact solves on the regions R_i for the residual it leaves there: a
+(one V-cycle, then solves on the regions R_i for the residual it leaves there: a
 multiplicative Schwarz step with one subdomain per region). It is not symmetric, so it serves
 FGMRES (:mod:`.mixed`).
+
+K_i need not be the whole region block. The penalty rows act on each displacement component on
+its own (a condition fixes x, y or z), so K_i = blockdiag(K_xx, K_yy, K_zz), the components'
+diagonal blocks of the region's rows, still takes them exactly, and leaves the couplings between
+components, which are no stiffer there than anywhere else, to the V-cycle. Its factors are those
+of the nodes' graph three times over instead of the graph of all 3n unknowns: about a third of the
+entries (``coupling="components"``, :class:`.factorization.ComponentFactors`). Where a held
+single-node patch adds its K-scaled volumetric term, which couples the components, the whole
+block is factorised (``coupling="auto"``, the default, decides per region).
 
 References
 ----------
@@ -80,12 +89,19 @@ def constraint_regions(system, held: np.ndarray | None = None, tol: float = REGI
         if on.any():
             sets.append(np.unique(psi.indices[strong & on[point]]))
     if held is not None and np.any(held):
-        sets.append(np.unique(np.concatenate([sp.csr_matrix(Gj)[np.flatnonzero(held)].indices for Gj in system.scni.G])))
+        sets.append(held_reach(system, held))
     return [np.asarray(s, np.int64) for s in sets]
 
 
+def held_reach(system, held: np.ndarray) -> np.ndarray:
+    """The nodes in the smoothed-gradient supports of the ``held`` (N,) bool nodes, sorted (n,) int:
+    where the K-scaled volumetric terms of their single-node patches reach."""
+    return np.unique(np.concatenate([sp.csr_matrix(Gj)[np.flatnonzero(held)].indices for Gj in system.scni.G]))
+
+
 class RegionSolves:
-    """Exact factorisations of K_d restricted to node regions, and the correction after a V-cycle.
+    """Factorisations of K_d restricted to node regions (whole blocks or each component's), and the
+    correction after a V-cycle.
 
     Each region keeps the factors of its diagonal block K_RR (assembled on a pattern of that block
     alone, :class:`.rows.RowAssembler` with ``square``) and applies its rows of K_d matrix-free
@@ -173,10 +189,8 @@ def _volumetric_reach(system) -> np.ndarray | None:
     vol = getattr(system, "volumetric", None)
     if vol is None or not np.any(vol.held):
         return None
-    held = np.flatnonzero(vol.held[vol.patch_of])
     out = np.zeros(vol.patch_of.shape[0], bool)
-    for Gj in system.scni.G:
-        out[sp.csr_matrix(Gj)[held].indices] = True
+    out[held_reach(system, vol.held[vol.patch_of])] = True
     return out
 
 
