@@ -150,6 +150,7 @@ def _results(out: Path) -> dict:
                 preconditioner_builds=info.get("preconditioner_builds"),
                 preconditioner_build_s=info.get("preconditioner_build_s"),
                 resumed_after_step=info.get("resumed_after_step"), sweep_s=round(float(info["total_s"]), 1),
+                build_s=round(float(info["build_s"]), 2),
                 force_z_max_N=[float(f) for f in res.force("z_max")])
 
 
@@ -187,7 +188,11 @@ def memory_model(data: dict, ranks: int = 8) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="+", default=CASES, help="SIZE:RANKS or SIZE:serial, SIZE in 37k, 75k, 150k, 295k")
-    ap.add_argument("--solve-record", action="store_true", help="also merge the rows into bench_solve.json")
+    ap.add_argument("--solve-record", action="store_true",
+                    help="also merge the rows into bench_solve.json (a serial row as the case SIZE:auto, a sweep at the defaults)")
+    ap.add_argument("--from-output", action="store_true",
+                    help="no runs: read the fields that come from a case's kept results file (out/bench_scaling/SIZE/) into "
+                         "its row again (a field added since it was made), its measured time and memory as they are")
     ap.add_argument("--model", action="store_true", help="only fit the memory model to the record and predict (no runs)")
     a = ap.parse_args(argv)
     data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {"cases": []}
@@ -197,12 +202,18 @@ def main(argv=None) -> int:
         print(json.dumps(data["memory_model"], indent=2))
         return 0
     for case in a.cases:
-        row = run_case(case)
+        if a.from_output:
+            row = next(r for r in data["cases"] if r["case"] == case)
+            size, ranks = case.split(":")
+            row = {**row, **_results(_model(size, "auto" if ranks == "serial" else "petsc_mixed")[0].parent
+                                     / f"results_{ranks}.h5")}
+        else:
+            row = run_case(case)
         data["cases"] = [r for r in data["cases"] if r["case"] != case] + [row]
         RESULTS.write_text(json.dumps(data, indent=2) + "\n")
-        if a.solve_record and not row["exit"] and row["backend"] == "petsc_mixed":
+        if a.solve_record and not row["exit"]:
             solve = json.loads(SOLVE_RESULTS.read_text())
-            key = f"{row['size']}:petsc_mixed:{row['ranks']}"
+            key = f"{row['size']}:auto" if row["backend"] == "auto" else f"{row['size']}:petsc_mixed:{row['ranks']}"
             entry = {**row, "case": key, "dofs": 3 * row["nodes"], "alpha_to": 0.95,
                      "newton_iterations_total": int(sum(row["newton_iterations_per_step"]))}
             solve["cases"] = [c for c in solve["cases"] if c.get("case") != key] + [entry]

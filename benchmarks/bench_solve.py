@@ -698,14 +698,16 @@ def write_tables(cases, command: str, meta: dict | None = None):
         if "error" in c:
             lines.append(f"| {c.get('size')} | {label(c)} | | | | | | | | | | {c.get('peak_rss_GB', '')} | | | {c['error'][:60]} |")
             continue
-        pre = c["preconditioner_nnz_per_row"]
+        # rows merged from bench_scaling.py (whole sweeps through the CLI) carry fewer fields: "—"
+        c = {k: "—" for k in ("nnz_per_row", "build_s", "assembly_s_per_iteration", "linear_s_per_iteration", "cutbacks")} | c
+        pre = c.get("preconditioner_nnz_per_row")
         nnz = f"{c['nnz_per_row'] or '—'} / {round(pre) if pre else '—'}"
         fac = f"{c['factorizations']} ({c['factor_nnz_per_row']})" if c.get("factorizations") else "—"
         lines.append(f"| {c['nodes']} | {label(c)} | {nnz} | {c['build_s']} | "
-                     f"{c['assembly_s_per_iteration']} | {c['linear_s_per_iteration']} | {fac} | {c['cg_iterations_per_newton'] or '—'} | "
+                     f"{c['assembly_s_per_iteration']} | {c['linear_s_per_iteration']} | {fac} | {c.get('cg_iterations_per_newton') or '—'} | "
                      f"{c['newton_iterations_per_step'][1:]} | {c['cutbacks']} | {c['sweep_s']} | {c['peak_rss_GB']} | "
                      f"{c['force_z_max_N'][-1]:.6f} | {dev_text(force_deviation(c, cases))} | {c['status'][:30]} |")
-    lines += ["", "Penalty factor: " + ", ".join(sorted({f"{c['penalty_factor']:g}" for c in cases if "error" not in c}))
+    lines += ["", "Penalty factor: " + ", ".join(sorted({f"{c['penalty_factor']:g}" for c in cases if "error" not in c and "penalty_factor" in c}))
               + "; commands per case in bench_solve.json. max ΔF vs direct: largest difference of the force curve "
               "(all load steps) from the direct solver (`direct`, else `direct_reuse`, the default up to 15k nodes; Newton "
               "tolerance 1e-8) on the same model, "
