@@ -203,7 +203,9 @@ def main(argv=None) -> int:
         return 0
     for case in a.cases:
         if a.from_output:
-            row = next(r for r in data["cases"] if r["case"] == case)
+            row = next((r for r in data["cases"] if r["case"] == case), None)
+            if row is None:
+                ap.error(f"--from-output: {RESULTS.name} has no row {case!r} to read its results file into")
             size, ranks = case.split(":")
             row = {**row, **_results(_model(size, "auto" if ranks == "serial" else "petsc_mixed")[0].parent
                                      / f"results_{ranks}.h5")}
