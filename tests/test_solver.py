@@ -489,7 +489,7 @@ def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
         f = PardisoLDLT(pat)
         f.factorize(pat.values(Ks))
         assert f.info["memory_kB"] > 0 and f.info["peak_memory_kB"] >= f.info["memory_kB"]
-        assert f.info["perturbed_pivots"] == 0 and f._data.size == 1
+        assert f.info["perturbed_pivots"] == 0 and f._data[0].size == 1
         x = f.solve(r)
         x_ref = spla.spsolve(Ks.tocsc(), r)
         assert np.allclose(x, x_ref, rtol=1e-8, atol=1e-10 * np.abs(x_ref).max())
@@ -505,10 +505,46 @@ def test_pardiso_ldlt_matches_scipy_and_counts_negative_eigenvalues():
     pat = SymmetricPattern(Kb)
     f = PardisoLDLT(pat)
     f.factorize(pat.values(Kb))
-    assert f.info["perturbed_pivots"] > 0 and f._data.size == pat.indices.size
+    assert f.info["perturbed_pivots"] > 0 and f._data[0].size == pat.indices.size
     b = K @ r[:, 0]  # consistent: K x = b has the solutions x = r + rigid-body motions
     assert np.linalg.norm(K @ f.solve(b) - b) <= 1e-6 * np.linalg.norm(b)
     f.free()
+
+
+@pytest.mark.skipif(not pardiso.available(), reason="MKL PARDISO not installed")
+def test_component_factors_share_one_pardiso_analysis_and_solve_each_block_exactly():
+    """The three component blocks of a 3 × 3-block matrix factorised by PARDISO under one shared
+    analysis (maxfct = 3) solve as SciPy's LU of each block does, before and after their factors are
+    released and made again, and the handle holds less than three analyses of the same blocks."""
+    from pixmuscle.mechanics.linsolve.factorization import ComponentFactors, PardisoFactor
+    from pixmuscle.verify.mechanics import linear_stiffness
+
+    model = mask_model(np.ones((5, 4, 4), bool), (0.1, 0.1, 0.2))
+    K, _ = linear_stiffness(model, lam=100.0, mu=10.0)
+    K = sp.bsr_matrix((K + 5.0 * sp.eye(K.shape[0])).tocsr(), blocksize=(3, 3))  # well-conditioned blocks
+    K.data[:, 1, 1] *= 3.0  # three different component blocks
+    K.data[:, 2, 2] *= -0.5  # one of them negative definite
+    r = np.random.default_rng(5).standard_normal(K.shape[0])
+    ref = np.empty_like(r)
+    Kc = K.tocsr()
+    for j in range(3):
+        ref[j::3] = spla.spsolve(Kc[j::3, j::3].tocsc(), r[j::3])
+    shared = ComponentFactors(PardisoFactor)
+    apart = ComponentFactors(PardisoFactor)
+    apart.parts = [PardisoFactor(block=1) for _ in range(3)]
+    assert all(p._handle()[1] is None for p in shared.parts) and shared.parts[2]._owner is shared.parts[0]
+    for f in (shared, apart):
+        f.factorize(K)
+        assert np.allclose(f.solve(r), ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
+    assert len({id(p._handle()[1]) for p in shared.parts}) == 1
+    assert not shared.definite and shared.info["negative_pivots"] == K.shape[0] // 3
+    assert shared.info["memory_kB"] < apart.info["memory_kB"]
+    assert shared.info["analysis_s"] < apart.info["analysis_s"]
+    shared.release()
+    shared.factorize(lambda: K)
+    assert np.allclose(shared.solve(r), ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
+    with pytest.raises(RuntimeError, match="before its first factorisation"):
+        shared.parts[0].sibling()
 
 
 @pytest.mark.skipif(not pardiso.available(), reason="MKL PARDISO not installed")

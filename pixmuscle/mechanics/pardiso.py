@@ -174,11 +174,17 @@ class PardisoLDLT:
         Factorise and solve in single precision (iparm[27] = 1: half the factor's memory), and
         refine each solution in double precision against the kept float64 values
         (x ← x + A₃₂⁻¹ (b − A x), at most ``refine`` steps, until ‖b − A x‖ ≤ ``refine_tol`` ‖b‖).
+    count : int
+        Matrices of this pattern whose factors are held at once (PARDISO's ``maxfct``; ``which``
+        of :meth:`factorize` and :meth:`solve` picks one): they share the one analysis, which
+        is then held once, not ``count`` times (the three displacement components' blocks of a
+        region, :class:`~.linsolve.factorization.ComponentFactors`).
     """
 
     MTYPE = -2  # real symmetric indefinite
 
-    def __init__(self, pattern: SymmetricPattern, single: bool = False, refine: int = 10, refine_tol: float = 1e-12):
+    def __init__(self, pattern: SymmetricPattern, single: bool = False, refine: int = 10, refine_tol: float = 1e-12,
+                 count: int = 1):
         import time
 
         self._f = _load().pardiso
@@ -200,29 +206,35 @@ class PardisoLDLT:
         self._real = np.float32 if self.single else np.float64
         if self.single:
             ip[27] = 1    # single precision: a, b and x are float32
-        self._data = np.zeros(pattern.indices.shape[0])
-        self._a = self._data  # the values PARDISO reads (a float32 copy in single precision)
-        self._factored = False
+        self.count = max(1, int(count))
+        zero = np.zeros(pattern.indices.shape[0])
+        # per matrix: the float64 values (kept only where a solve reads them) and those PARDISO reads
+        # (a float32 copy in single precision)
+        self._data = [zero] * self.count
+        self._a = [zero] * self.count
+        self._factored = [False] * self.count
         self.info = {}
         t0 = time.perf_counter()
         z = np.zeros(pattern.n, self._real)
-        self._call(11, self._data.astype(self._real, copy=False), z, z)
+        self._call(11, zero.astype(self._real, copy=False), z, z)
         self.info.update(analysis_s=time.perf_counter() - t0, factor_nnz=self._factor_nnz(), **self._memory())
 
     def _memory(self) -> dict:
         """PARDISO's own memory, kB (iparm[14..16]; see the class's ``info``)."""
         held = int(self.iparm[15]) + int(self.iparm[16])
-        return {"memory_kB": held, "peak_memory_kB": max(held, int(self.iparm[14]))}
+        return {"memory_kB": held, "peak_memory_kB": max(held, int(self.iparm[14])),
+                "analysis_kB": int(self.iparm[15]), "factors_kB": int(self.iparm[16])}
 
     def _factor_nnz(self) -> int:
         """Entries of the factor (iparm[17], an int32 that wraps above 2³¹: read as unsigned)."""
         return int(np.int32(self.iparm[17]).view(np.uint32))
 
-    def _call(self, phase, a, b, x, nrhs=1):
+    def _call(self, phase, a, b, x, nrhs=1, which=0):
         err = ctypes.c_int32(0)
         i32 = ctypes.c_int32
         p_i32 = ctypes.POINTER(ctypes.c_int32)
-        self._f(self.pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)), ctypes.byref(i32(1)), ctypes.byref(i32(1)),
+        self._f(self.pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)), ctypes.byref(i32(self.count)),
+                ctypes.byref(i32(which + 1)),
                 ctypes.byref(i32(self.MTYPE)), ctypes.byref(i32(phase)), ctypes.byref(i32(self.pattern.n)),
                 a.ctypes.data, self.pattern.indptr.ctypes.data_as(p_i32), self.pattern.indices.ctypes.data_as(p_i32),
                 None, ctypes.byref(i32(nrhs)), self.iparm.ctypes.data_as(p_i32), ctypes.byref(i32(0)),
@@ -230,78 +242,81 @@ class PardisoLDLT:
         if err.value != 0:
             raise PardisoError(f"PARDISO phase {phase}: error {err.value} ({_ERRORS.get(err.value, 'unknown')})")
 
-    def factorize(self, values: np.ndarray) -> None:
-        """Numerical factorisation of the matrix with upper-triangle ``values`` (pattern order)."""
-        self._data = np.ascontiguousarray(values, dtype=np.float64)
-        self._a = self._data.astype(self._real, copy=False)
+    def factorize(self, values: np.ndarray, which: int = 0) -> None:
+        """Numerical factorisation of the matrix ``which`` (of ``count``) with upper-triangle
+        ``values`` (pattern order)."""
+        self._data[which] = np.ascontiguousarray(values, dtype=np.float64)
+        self._a[which] = self._data[which].astype(self._real, copy=False)
         dummy = np.zeros(self.pattern.n, self._real)
-        self._factored = False
-        self._call(22, self._a, dummy, dummy)
-        self._factored = True
+        self._factored[which] = False
+        self._call(22, self._a[which], dummy, dummy, which=which)
+        self._factored[which] = True
         self.info.update(factor_nnz=self._factor_nnz(), factor_gflop=float(self.iparm[18]) / 1e3,
                          inertia=(int(self.iparm[21]), int(self.iparm[22])), perturbed_pivots=int(self.iparm[13]),
                          **self._memory())
         if not self.single and self.info["perturbed_pivots"] == 0:
             # a solve (phase 33) reads the values only to refine after perturbed pivots (iparm[7] = 0),
             # and there were none: they are not kept (half the bytes of the pattern and values)
-            self._data = self._a = _UNREAD
+            self._data[which] = self._a[which] = _UNREAD
 
-    def solve(self, b: np.ndarray) -> np.ndarray:
-        """x = A⁻¹ b for the last factorised matrix; ``b`` (n,) or (n, k)."""
-        if not self._factored:
+    def solve(self, b: np.ndarray, which: int = 0) -> np.ndarray:
+        """x = A⁻¹ b for the last factorised matrix ``which``; ``b`` (n,) or (n, k)."""
+        if not self._factored[which]:
             raise PardisoError("PARDISO: solve before a successful factorisation")
         b = np.asarray(b, dtype=np.float64)
         if self.single:
-            return self._refined(b)
+            return self._refined(b, which)
         bf = np.asfortranarray(b)
         x = np.zeros_like(bf)
-        self._call(33, self._data, bf, x, nrhs=1 if b.ndim == 1 else b.shape[1])
+        self._call(33, self._data[which], bf, x, nrhs=1 if b.ndim == 1 else b.shape[1], which=which)
         return np.ascontiguousarray(x)
 
-    def _solve32(self, b: np.ndarray) -> np.ndarray:
+    def _solve32(self, b: np.ndarray, which: int) -> np.ndarray:
         """A₃₂⁻¹ b with the single-precision factors, returned in float64."""
         bf = np.asfortranarray(b, dtype=np.float32)
         x = np.zeros_like(bf)
-        self._call(33, self._a, bf, x, nrhs=1 if b.ndim == 1 else b.shape[1])
+        self._call(33, self._a[which], bf, x, nrhs=1 if b.ndim == 1 else b.shape[1], which=which)
         return np.ascontiguousarray(x, dtype=np.float64)
 
-    def _refined(self, b: np.ndarray) -> np.ndarray:
+    def _refined(self, b: np.ndarray, which: int) -> np.ndarray:
         """Single-precision solve refined in double precision against the float64 values."""
         pat = self.pattern
-        U = sp.csr_matrix((self._data, pat.indices, pat.indptr), shape=(pat.n, pat.n))
-        diag = self._data[pat.indptr[:-1]]  # each row's first upper entry is its diagonal
+        data = self._data[which]
+        U = sp.csr_matrix((data, pat.indices, pat.indptr), shape=(pat.n, pat.n))
+        diag = data[pat.indptr[:-1]]  # each row's first upper entry is its diagonal
         d = diag[:, None] if b.ndim == 2 else diag
-        x = self._solve32(b)
+        x = self._solve32(b, which)
         bn = np.linalg.norm(b)
         for _ in range(self.refine):
             r = b - (U @ x + U.T @ x - d * x)
             if np.linalg.norm(r) <= self.refine_tol * bn:
                 break
-            x += self._solve32(r)
+            x += self._solve32(r, which)
         return x
 
     def __matmul__(self, b):
         return self.solve(b)
 
-    def release_factors(self) -> None:
-        """Release the numerical factors and the values (PARDISO phase 0); the analysis stays, and
-        :meth:`factorize` works as before."""
-        if self._factored:
-            dummy = np.zeros(1)
-            self._call(0, dummy.astype(self._real), dummy.astype(self._real), dummy.astype(self._real))
-            self._factored = False
-        self._data = self._a = np.zeros(0)
+    def release_factors(self, which: int | None = None) -> None:
+        """Release the numerical factors and the values of the matrix ``which`` (default: every
+        one; PARDISO phase 0); the analysis stays, and :meth:`factorize` works as before."""
+        dummy = np.zeros(1, self._real)
+        for k in range(self.count) if which is None else (which,):
+            if self._factored[k]:
+                self._call(0, dummy, dummy, dummy, which=k)
+                self._factored[k] = False
+            self._data[k] = self._a[k] = np.zeros(0)
 
     def free(self) -> None:
         """Release PARDISO's internal memory (factors and analysis)."""
         if self.pt.any():
             dummy = np.zeros(1)
             try:
-                self._call(-1, self._data, dummy, dummy)
+                self._call(-1, self._data[0], dummy, dummy)
             except PardisoError:
                 pass
             self.pt[:] = 0
-            self._factored = False
+            self._factored = [False] * self.count
 
     def __del__(self):
         try:

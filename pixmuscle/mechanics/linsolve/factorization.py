@@ -177,6 +177,25 @@ class PardisoFactor:
         self.info: dict = {"analysis_s": 0.0}
         self._pattern = None
         self._ldlt = None
+        self._owner = None  # the factor whose analysis this one shares (:meth:`sibling`), or None: its own
+        self._which = 0  # this factor's matrix among those of the shared analysis
+        self._siblings = 0
+
+    def sibling(self) -> PardisoFactor:
+        """A factor of another matrix with this one's sparsity pattern that shares its analysis
+        (PARDISO's ``maxfct``: one analysis held for all of them). Made before the first
+        :meth:`factorize`; this factor is factorised first, whenever the pattern may have changed."""
+        if self._ldlt is not None or self._owner is not None:
+            raise RuntimeError("siblings are made from an unshared factor before its first factorisation")
+        self._siblings += 1
+        other = PardisoFactor(single=self.single, block=self.block)
+        other._owner, other._which = self, self._siblings
+        return other
+
+    def _handle(self):
+        """(pattern, PardisoLDLT) that factorises and solves this factor's matrix."""
+        owner = self if self._owner is None else self._owner
+        return owner._pattern, owner._ldlt
 
     def factorize(self, K) -> None:
         from ..pardiso import PardisoError, PardisoLDLT, SymmetricPattern
@@ -186,30 +205,34 @@ class PardisoFactor:
         b = self.block
         if K.format != "bsr" or K.blocksize != (b, b):
             K = sp.bsr_matrix(K, blocksize=(b, b))
-        if self._pattern is None or not self._pattern.matches(K):
-            if self._ldlt is not None:
-                self._ldlt.free()
-            self._pattern = SymmetricPattern(K)
-            self._ldlt = PardisoLDLT(self._pattern, single=self.single)
-            self.info["analysis_s"] += self._ldlt.info["analysis_s"]
-        values = self._pattern.values(K)
+        pattern, ldlt = self._handle()
+        if self._owner is not None and (pattern is None or not pattern.matches(K)):
+            raise ValueError("a sibling PARDISO factor needs the sparsity pattern its owner was last factorised with")
+        if self._owner is None and (pattern is None or not pattern.matches(K)):
+            if ldlt is not None:
+                ldlt.free()
+            self._pattern = pattern = SymmetricPattern(K)
+            self._ldlt = ldlt = PardisoLDLT(pattern, single=self.single, count=1 + self._siblings)
+            self.info["analysis_s"] += ldlt.info["analysis_s"]
+        values = pattern.values(K)
         del K  # the caller's function handed it over: only the values stay through the factorisation
         try:
-            self._ldlt.factorize(values)
+            ldlt.factorize(values, which=self._which)
         except PardisoError as exc:
             raise SolverError(f"direct solver (PARDISO): {exc}; check the boundary conditions") from None
-        neg = self._ldlt.info["inertia"][1]
+        neg = ldlt.info["inertia"][1]
         self.definite = neg == 0
-        self.info.update(factor_nnz=self._ldlt.info["factor_nnz"], factor_gflop=self._ldlt.info["factor_gflop"],
-                         negative_pivots=neg, memory_kB=self._ldlt.info["memory_kB"],
-                         peak_memory_kB=self._ldlt.info["peak_memory_kB"])
+        # memory_kB: what the (shared) PARDISO handle holds, its analysis and every factor of its matrices
+        self.info.update(factor_nnz=ldlt.info["factor_nnz"], factor_gflop=ldlt.info["factor_gflop"],
+                         negative_pivots=neg, memory_kB=ldlt.info["memory_kB"], peak_memory_kB=ldlt.info["peak_memory_kB"])
 
     def solve(self, r: np.ndarray) -> np.ndarray:
-        return self._ldlt.solve(r)
+        return self._handle()[1].solve(r, which=self._which)
 
     def release(self) -> None:
-        if self._ldlt is not None:
-            self._ldlt.release_factors()
+        ldlt = self._handle()[1]
+        if ldlt is not None:
+            ldlt.release_factors(which=self._which)
 
     def escalate(self) -> bool:
         return False
@@ -226,6 +249,9 @@ class ComponentFactors:
     where K is block-diagonal by component (a penalty on one displacement component, a scalar
     mass term) and leaving the couplings between components to whatever it is combined with.
 
+    The three blocks have one sparsity pattern; an engine that can share one analysis among
+    several matrices of a pattern (:meth:`PardisoFactor.sibling`) holds it once for the three.
+
     Parameters
     ----------
     engine : callable
@@ -233,7 +259,9 @@ class ComponentFactors:
     """
 
     def __init__(self, engine):
-        self.parts = [engine(block=1) for _ in range(3)]
+        first = engine(block=1)
+        share = getattr(first, "sibling", None)
+        self.parts = [first] + [share() if share is not None else engine(block=1) for _ in range(2)]
         self.info: dict = {}
 
     @property
@@ -244,6 +272,8 @@ class ComponentFactors:
         if callable(K):
             K = K()
         K = sp.bsr_matrix(K, blocksize=(3, 3))
+        if not K.has_sorted_indices:  # the three blocks share K's index arrays: sorted once here, not by each
+            K = K.sorted_indices()
         n = K.shape[0] // 3
         blocks = [sp.bsr_matrix((np.ascontiguousarray(K.data[:, j:j + 1, j:j + 1]), K.indices, K.indptr), shape=(n, n))
                   for j in range(3)]
@@ -253,7 +283,10 @@ class ComponentFactors:
             f.factorize(B)
             del B
         infos = [f.info for f in self.parts]
-        self.info = {k: sum(i.get(k, 0) for i in infos) for k in ("factor_nnz", "memory_kB", "analysis_s", "negative_pivots")}
+        self.info = {k: sum(i.get(k, 0) for i in infos) for k in ("factor_nnz", "analysis_s", "negative_pivots")}
+        # a shared analysis's handle reports the memory of all its matrices: counted once, after the last
+        held = {id(f._handle()[1]) if hasattr(f, "_handle") else id(f): f.info.get("memory_kB", 0) for f in self.parts}
+        self.info["memory_kB"] = sum(held.values())
         self.info["peak_memory_kB"] = max(i.get("peak_memory_kB", 0) for i in infos)
 
     def solve(self, r: np.ndarray) -> np.ndarray:
