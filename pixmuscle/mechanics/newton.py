@@ -254,9 +254,10 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0, fallba
     linsolver : LinearSolver
     step : int
         Load-step number, for the log.
-    fallback_tangent : State, optional
-        Last converged state: its tangent recomputes an update that is no descent direction of Π,
-        or whose solve or line search fails (see the module docstring). ``None``: no fallback.
+    fallback_tangent : State or callable, optional
+        Last converged state, or a function of no arguments that evaluates it: its tangent
+        recomputes an update that is no descent direction of Π, or whose solve or line search
+        fails (see the module docstring). ``None``: no fallback.
 
     Returns
     -------
@@ -305,6 +306,8 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0, fallba
         trial = None
         for k, tangent_state in enumerate(tangents):
             try:
+                if callable(tangent_state):  # a converged state kept as the function that evaluates it
+                    tangent_state = tangent_state()
                 linsolver.prepare(system, tangent_state)
                 if rp is None:
                     dd = linsolver.solve(r.reshape(-1), rtol=eta).reshape(state.d.shape)
@@ -339,6 +342,24 @@ def newton(system, state, cfg: NewtonConfig, linsolver, *, step: int = 0, fallba
         state = trial
     return NewtonResult(state, False, cfg.max_iterations, rows, rel,
                         f"no convergence in {cfg.max_iterations} iterations")
+
+
+def _start(system, d, last, dt, t, alpha):
+    """Start state of a load increment with a changing activation: the converged ``d`` at the new
+    load factor and α, or the extrapolation of :func:`_predict` where its residual is smaller."""
+    state = system.evaluate(d, t, alpha)
+    if last is None:
+        return state
+    pred = _predict(system, d, last, dt, t, alpha)
+    return pred if _norm(system, pred.r) < _norm(system, state.r) else state
+
+
+def _fallback(system, state):
+    """The converged ``state`` as the fallback tangent of the next increments: a function that
+    evaluates it again from its d, t, α and carried pressure (the same state: ``evaluate`` is
+    deterministic), so that its F, P and moduli are not held while they are not needed."""
+    d, t, alpha, pressure = state.d, state.t, state.alpha, getattr(state, "pressure", None)
+    return lambda: system.evaluate(d, t, alpha, pressure=pressure)
 
 
 def _predict(system, d, last, dt, t, alpha):
@@ -455,7 +476,8 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
     d = np.zeros((system.n_nodes, 3)) if d0 is None else np.asarray(d0, float).copy()
     records: list[StepRecord] = []
     t_done = 0.0
-    conv = None  # last converged state: its tangent is the fallback of every increment
+    conv = None  # last converged state (evaluated when needed): its tangent is the fallback of every increment
+    final = None  # the evaluated state of the last step, which its record keeps
     # With a constant activation (displacement-driven loading) the tangent does not change with the load
     # factor, so the start of an increment is the linear extrapolation of the last converged increment
     # (the fastest start there). With a changing activation an increment starts at the converged d, or at
@@ -469,9 +491,8 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
         records = list(resume)
         prev = records[-1]
         d, t_done, last = np.asarray(prev.state.d, float).copy(), float(prev.state.t), prev.increment
-        conv = prev.state if hasattr(prev.state, "r") else None
-        if conv is None and not passive_ramp:
-            conv = system.evaluate(d, t_done, prev.state.alpha)
+        if not passive_ramp:
+            conv = _fallback(system, prev.state)
         if cfg.hold_cutback and last is not None:
             level = held_halvings(last[1], n_steps)
     for k in range(len(records), n_steps + 1):
@@ -487,17 +508,16 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
         while first or t_done < t_target - 1e-12:
             first = False
             t_try = min(t_done + dt, t_target) if dt > 0 else t_target
+            # no evaluated state is held here while Newton runs (the start, the predictor it lost to,
+            # the last converged one): each keeps F, P and the moduli of every node (0.26 GB at 295k nodes)
+            res = None
             try:
                 if passive_ramp:
-                    state = _predict(system, d, last, t_try - t_done, t_try, alpha_of(t_try))
-                    res = newton(system, state, cfg, linsolver, step=k)
+                    res = newton(system, _predict(system, d, last, t_try - t_done, t_try, alpha_of(t_try)), cfg,
+                                 linsolver, step=k)
                 else:
-                    state = system.evaluate(d, t_try, alpha_of(t_try))
-                    if last is not None:  # the extrapolated start where it is nearer equilibrium
-                        pred = _predict(system, d, last, t_try - t_done, t_try, alpha_of(t_try))
-                        if _norm(system, pred.r) < _norm(system, state.r):
-                            state = pred
-                    res = newton(system, state, cfg, linsolver, step=k, fallback_tangent=conv)
+                    res = newton(system, _start(system, d, last, t_try - t_done, t_try, alpha_of(t_try)), cfg,
+                                 linsolver, step=k, fallback_tangent=conv)
             except SolverError as exc:  # inverted already at the start of the increment
                 res = NewtonResult(None, False, 0, [], np.inf, str(exc))
             rows.extend(res.rows)
@@ -507,9 +527,9 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
                     last = (res.state.d - d, t_try - t_done)
                     subs += 1
                 d = res.state.d
-                conv = res.state
+                conv = _fallback(system, res.state)
                 t_done = t_try
-                state = res.state
+                state, res = res.state, None
                 continue
             cut += 1
             stalled = stalled + 1 if _stagnated(res, cfg) else 0
@@ -531,10 +551,15 @@ def load_steps(system, n_steps: int, alpha_from: float, alpha_to: float, cfg: Ne
             _LOG.info("load step %d: %d increments of load factor (the last %.4g)", k, subs, last[1])
         rec = StepRecord(step=k, t=t_target, alpha=alpha_of(t_target), state=state, iterations=iters, cutbacks=cut, rows=rows,
                          increment=last)
-        if records and not isinstance(records[-1].state, SavedState):  # the earlier step's F, P and A go
+        if records and not isinstance(records[-1].state, SavedState):  # a resumed last step's F, P and A go
             st = records[-1].state
             records[-1] = dataclasses.replace(records[-1], state=SavedState(st.d, st.t, st.alpha))
         records.append(rec)
         if on_step is not None:
             on_step(rec)
+        # the next step does not hold this one's F, P and A (the fallback evaluates them again if needed)
+        records[-1] = dataclasses.replace(rec, state=SavedState(state.d, state.t, state.alpha))
+        final, state, rec = (state if k == n_steps else None), None, None
+    if records and final is not None:  # the last step keeps its evaluated state
+        records[-1] = dataclasses.replace(records[-1], state=final)
     return records

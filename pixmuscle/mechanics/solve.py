@@ -207,7 +207,7 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
 
     def on_step(rec, replay=False):
         st = rec.state
-        last_state[:] = [st]
+        last_state[:] = [(st.d, st.t, st.alpha)]  # evaluated again at the end: its F, P and A are not held meanwhile
         out = system.step_output(st)  # under MPI: the nodal fields on rank 0 only (None elsewhere)
         steps.append(dict(alpha=rec.alpha if activation is None else activation.mean(rec.alpha), t=rec.t,
                           iterations=rec.iterations, cutbacks=rec.cutbacks, rows=rec.rows, **out))
@@ -277,7 +277,7 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
     warnings = list(getattr(linsolver, "warnings", []))
     ellipticity = None
     if last_state:  # computed once, at the last converged state: the warning and the stored field
-        ellipticity = node_ellipticity(system, last_state[0], len(steps) - 1)
+        ellipticity = node_ellipticity(system, system.evaluate(*last_state[0]), len(steps) - 1)
     if ellipticity is not None:
         bad, msg = ellipticity_warning(ellipticity.minimum)
         info["non_elliptic_nodes"] = bad
