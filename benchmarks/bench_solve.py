@@ -463,7 +463,6 @@ def infsup(size: str, penalty: float | None, patch=(1, 1, 3), held: str = "press
 
     from pixmuscle.mechanics.pressure import PatchDivergence
     from pixmuscle.mechanics.solve import build_system
-    from pixmuscle.mechanics.volumetric import shear_moduli
 
     model, cfg = leg_case(size, penalty, volumetric={"method": "projected", "patch": list(patch),
                                                      "held": "patch" if held == "patch" else "own"})
@@ -481,7 +480,7 @@ def infsup(size: str, penalty: float | None, patch=(1, 1, 3), held: str = "press
     main = system.tangent_operator(state).main
     Q = vol.Q[np.flatnonzero(press)]
     G = PatchDivergence(main.B, main.BT, state.vol.a, Q).sparse()
-    mass = 1.0 / ((Q @ shear_moduli(system.A0)) * vol.vp[press])
+    mass = 1.0 / ((Q @ system.shear0) * vol.vp[press])
     out = {"size": size, "nodes": n, "patch": list(patch), "held_single_patches_in": held,
            "patches": vol.n_patches, "pressure_unknowns": int(press.sum()),
            "held_single_patches": int(vol.held.sum())}

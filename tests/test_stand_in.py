@@ -87,3 +87,36 @@ def test_filtered_stand_in_is_positive_definite_where_dropping_far_pairs_is_not(
     assert np.linalg.eigvalsh(stand_in.toarray())[0] > 0.0
     lam = scipy.linalg.eigh(full.toarray(), stand_in.toarray(), eigvals_only=True)
     assert 0.25 < lam[0] and lam[-1] < 3.0 and lam[-1] / lam[0] < 10.0
+
+
+def test_stand_in_filled_by_blocks_of_cells_is_the_one_filled_at_once(monkeypatch):
+    """The stand-in, its pattern and a region's block made one block of cells at a time (the
+    gradients of each block only, :meth:`MechanicalSystem._support_gradients` with ``cells``) equal
+    what the whole support layout's gradients give: the same pattern, and values equal to round-off
+    (the blocks add the cells in the same order)."""
+    from pixmuscle.mechanics import assembly
+    from pixmuscle.mechanics.rows import RowAssembler
+
+    mask = np.ones((7, 6, 5), bool)
+    mask[4:, 4:, :] = False
+    model = mask_model(mask, (0.1, 0.1, 0.25), tissue=2)
+    cfg = _cfg(boundary_conditions=CLAMPED, volumetric={"method": "projected", "patch": [2, 2, 3]})
+    system = build_system(model, cfg)[0]
+    state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.0)
+    S = system.support
+    whole = system._support_gradients()
+    cells = np.array([5, 0, 17, 3])  # any cells, in any order: their rows one after the other
+    rows = np.concatenate([np.arange(S.indptr[c], S.indptr[c + 1]) for c in cells])
+    np.testing.assert_array_equal(system._support_gradients(cells), whole[rows])
+    np.testing.assert_array_equal(system._support_gradients((4, 9)), whole[S.indptr[4]:S.indptr[9]])
+    nodes = np.arange(0, model.n_nodes, 3)
+    once = system.preconditioner_matrix(state, 2, volumetric="held")
+    block_once = RowAssembler(system, nodes, square=True).block(state, pressure_free=True)
+    fresh = build_system(model, cfg)[0]
+    monkeypatch.setattr(assembly, "FILL_BLOCK", 97)  # many blocks of a few cells
+    assert len(fresh.assembler(2).cell_blocks()) > 20
+    blocks = fresh.preconditioner_matrix(state, 2, volumetric="held")
+    for a, b in ((once, blocks), (block_once, RowAssembler(fresh, nodes, square=True).block(state, pressure_free=True))):
+        np.testing.assert_array_equal(a.indptr, b.indptr)
+        np.testing.assert_array_equal(a.indices, b.indices)
+        np.testing.assert_allclose(b.data, a.data, rtol=0, atol=1e-12 * np.abs(a.data).max())

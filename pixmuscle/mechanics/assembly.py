@@ -266,6 +266,9 @@ def local_rows(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, own: np.n
 #: entries :func:`local_rows_csr` cuts at a time: its transients (~130 bytes per entry) stay below
 #: 0.1 GB, where the whole support of the 295k leg at once (21 M entries) held ~2.7 GB
 LOCAL_CHUNK = 500_000
+#: support entries per block of cells of a fill by blocks (:meth:`Assembler.cell_blocks`): its gradients
+#: and their cut copy hold 48 bytes per entry (the whole layout's took 2 GB at 295k nodes)
+FILL_BLOCK = 2_000_000
 
 
 def local_rows_csr(ptr: np.ndarray, cols: np.ndarray, values: np.ndarray, ijk: np.ndarray, radius: int,
@@ -514,19 +517,24 @@ class Assembler:
         (:func:`support_values`)."""
         return support_values(self.ptr, self.nodes, self.n_nodes, mats)
 
-    def fill(self, g: np.ndarray, A: np.ndarray, w: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    def fill(self, g: np.ndarray, A: np.ndarray, w: np.ndarray, out: np.ndarray | None = None,
+             cells: tuple[int, int] | None = None) -> np.ndarray:
         """Add Σ_L w_L B̃_Lᵀ A_L B̃_L to block data.
 
         Parameters
         ----------
         g : (nnz(S), 3) float
-            Gradient vectors g_I(L) on the support layout (:meth:`on_support`), cm⁻¹.
+            Gradient vectors g_I(L) on the support layout (:meth:`on_support`), cm⁻¹; with
+            ``cells``, those of the cells' entries of the layout only.
         A : (N_cells, 3, 3, 3, 3) float
             Tangent A[L, i, J, k, L'] = ∂P_iJ/∂F_kL', N/cm².
         w : (N_cells,) float
             Integration weights (cell volumes, cm³).
         out : (nnzb, 3, 3) float, optional
             Data to add to (a new zero array when omitted).
+        cells : (c0, c1), optional
+            Add the cells c0 ≤ L < c1 only (:meth:`cell_blocks`: a fill by blocks of cells holds
+            one block's gradients, not the whole layout's).
 
         Returns
         -------
@@ -535,20 +543,52 @@ class Assembler:
         """
         if out is None:
             out = self.zeros()
-        g, A, w = (np.ascontiguousarray(x, dtype=np.float64) for x in (g, A, w))
+        c0, c1 = (0, self.n_cells) if cells is None else (int(cells[0]), int(cells[1]))
+        ptr, nodes = self._cell_layout(c0, c1)
+        g, A, w = (np.ascontiguousarray(x, dtype=np.float64) for x in (g, A[c0:c1], w[c0:c1]))
         if self.reach >= 0:
-            g = np.ascontiguousarray(self.local(g))
-        run_parts(lambda keep: _fill(self.ptr, self.nodes, g, A, w, self.indptr, self.indices, out, self.ijk, self.reach,
+            g = np.ascontiguousarray(self.local(g, (c0, c1)))
+        run_parts(lambda keep: _fill(ptr, nodes, g, A, w, self.indptr, self.indices, out, self.ijk, self.reach,
                                      self.wide, keep, self.keepcol), self._row_parts())
         return out
 
-    def local(self, g: np.ndarray) -> np.ndarray:
+    def _cell_layout(self, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        """The support layout of the cells c0 ≤ L < c1: row pointers from 0 and their nodes (views)."""
+        if c0 == 0 and c1 == self.n_cells:
+            return self.ptr, self.nodes
+        lo, hi = self.ptr[c0], self.ptr[c1]
+        return (self.ptr[c0:c1 + 1] - lo).astype(self.ptr.dtype, copy=False), self.nodes[lo:hi]
+
+    def cell_blocks(self, entries: int | None = None) -> list[tuple[int, int]]:
+        """Contiguous ranges (c0, c1) of cells of about ``entries`` (default :data:`FILL_BLOCK`)
+        support entries each (a cell with more is a range alone)."""
+        return self.blocks_of(self.ptr, entries)
+
+    @staticmethod
+    def blocks_of(ptr: np.ndarray, entries: int | None = None) -> list[tuple[int, int]]:
+        """Contiguous ranges (r0, r1) of the rows of a CSR layout with row pointers ``ptr``, of about
+        ``entries`` (default :data:`FILL_BLOCK`) entries each (a row with more is a range alone)."""
+        entries = FILL_BLOCK if entries is None else int(entries)
+        ptr = np.asarray(ptr, np.int64)
+        n = ptr.size - 1
+        out, start = [], 0
+        while start < n:
+            stop = min(n, max(start + 1, int(np.searchsorted(ptr, ptr[start] + entries, side="right")) - 1))
+            out.append((start, stop))
+            start = stop
+        return out
+
+    def local(self, g: np.ndarray, cells: tuple[int, int] | None = None) -> np.ndarray:
         """Values on the support layout with each cell's row cut to the nodes within ``reach // 2``
         voxels of the cell (:func:`local_rows`; the cells are the nodes), so that a filtered fill
-        Σ_L w_L B̂_Lᵀ A_L B̂_L is positive semi-definite wherever A is."""
+        Σ_L w_L B̂_Lᵀ A_L B̂_L is positive semi-definite wherever A is; with ``cells`` (c0, c1),
+        ``g`` holds those cells' entries only."""
         if self.n_cells != self.n_nodes:
             raise ValueError("a filtered fill needs one cell per node")
-        return local_rows_csr(self.ptr, self.nodes, g, self.ijk, self.reach // 2, self.wide, self.local_tol)
+        c0, c1 = (0, self.n_cells) if cells is None else (int(cells[0]), int(cells[1]))
+        ptr, nodes = self._cell_layout(c0, c1)
+        return local_rows_csr(ptr, nodes, g, self.ijk, self.reach // 2, self.wide, self.local_tol,
+                              own=None if cells is None else np.arange(c0, c1))
 
     def _row_parts(self) -> list[np.ndarray]:
         """Row masks of the fills, one per thread: contiguous node ranges of about equal numbers of

@@ -59,11 +59,8 @@ class RowAssembler:
             raise ValueError("a square RowAssembler needs sorted, distinct owned nodes")
         self.square = square
         self.asm = Assembler(Sc, patches=patches, rows=self.owned, square=square)  # the owned block rows only
-        # the cells' entries in the system's support layout: their gradients are gathered from it at
-        # each fill (:meth:`gradients`), not kept
-        start = S.indptr[self.cells].astype(np.int64)
-        count = np.diff(S.indptr)[self.cells].astype(np.int64)
-        self._entries = (start, count)
+        # the cells' gradients on their rows of the system's support layout are made at each fill
+        # (:meth:`gradients`), not kept
         self._stab = None  # NSNI: the rows of the scalar operator, or (its gradient differences, moduli) on this pattern
         if system.stab is not None and system.stab.scalar:
             self._stab = system.stab.L.rows_matrix(self.owned)  # the owned rows only
@@ -104,10 +101,7 @@ class RowAssembler:
         """Smoothed gradients of :attr:`cells` on this pattern's support layout, (nnz, 3), cm⁻¹: the
         system's (:meth:`~pixmuscle.mechanics.solve.MechanicalSystem._support_gradients`) at the
         cells' entries."""
-        start, count = self._entries
-        first = np.cumsum(count) - count
-        pos = np.repeat(start - first, count) + np.arange(int(count.sum()))
-        return self.system._support_gradients()[pos]
+        return self.system._support_gradients(self.cells)
 
     def _constant(self) -> np.ndarray:
         """Block data of the penalty and NSNI rows (made for each assembly, not kept)."""

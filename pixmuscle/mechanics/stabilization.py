@@ -51,11 +51,17 @@ def gradient_differences(scni: SCNI) -> list[list[sp.csr_matrix]]:
     ``H[k][J] = (∂_J Ψ(face⁺_k) − ∂_J Ψ(face⁻_k)) / h_k``: difference of the RK gradients at the
     centres of the two faces of cell L normal to axis k.
     """
+    return [[gradient_difference(scni, k, J) for J in range(3)] for k in range(3)]
+
+
+def gradient_difference(scni: SCNI, k: int, J: int) -> sp.csr_matrix:
+    """One operator H[k][J] of :func:`gradient_differences` (N × N CSR, cm⁻²), made on its own (a
+    build that needs them one at a time holds one, not nine)."""
     if scni.dpsi_faces is None:
         raise ValueError("SCNI operators were built without face gradients (face_gradients=True is needed)")
-    h = scni.spacing
-    plus, minus = scni.faces.plus, scni.faces.minus
-    return [[((scni.dpsi_faces[J][plus[k]] - scni.dpsi_faces[J][minus[k]]) / h[k]).tocsr() for J in range(3)] for k in range(3)]
+    faces = scni.faces
+    D = scni.dpsi_faces[J]
+    return ((D[faces.plus[k]] - D[faces.minus[k]]) / scni.spacing[k]).tocsr()
 
 
 def reference_shear_modulus(A0: np.ndarray) -> np.ndarray:
@@ -95,14 +101,18 @@ def stabilization_operators(scni: SCNI, A0: np.ndarray, *, coefficient: float = 
     C : (3N, 9, 9) float
         c · M_Lk · A_s,L per axis k (k-major), N·cm³, index 3i + J.
     """
+    return gradient_differences(scni), stabilization_moduli(scni, A0, coefficient=coefficient, modulus=modulus)
+
+
+def stabilization_moduli(scni: SCNI, A0: np.ndarray, *, coefficient: float = 1.0, modulus: str = "shear") -> np.ndarray:
+    """C of :func:`stabilization_operators`: c · M_Lk · A_s,L per axis k (k-major), (3N, 9, 9), N·cm³."""
     n = scni.n_nodes
     As = stabilization_modulus(A0, modulus).reshape(n, 9, 9)
     M = second_moments(scni.volume, scni.spacing)
     C = np.empty((3 * n, 9, 9))
     for k in range(3):  # in place: no per-axis temporaries beside C
         np.multiply(coefficient * M[:, k, None, None], As, out=C[k * n:(k + 1) * n])
-    del As
-    return gradient_differences(scni), C
+    return C
 
 
 def stabilization_stiffness(scni: SCNI, assembler: Assembler, A0: np.ndarray, *, coefficient: float = 1.0,

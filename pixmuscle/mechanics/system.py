@@ -46,9 +46,9 @@ from .materials import LAWS, needs
 from .pressure import PatchDivergence, PressureSpace, pressure_scale
 from .rows import RowAssembler
 from .scni import SCNI, build_scni, cell_corners, cell_faces, face_incidence, support_radius
-from .stabilization import stabilization_operators, stabilization_stiffness
+from .stabilization import gradient_difference, gradient_differences, stabilization_moduli, stabilization_stiffness
 from .tangent import ConstantStiffness, MatrixFreeTangent, ProductForm, spd_surrogate
-from .volumetric import PatchProjection, VolumetricState
+from .volumetric import PatchProjection, VolumetricState, shear_moduli
 
 if TYPE_CHECKING:
     from .linsolve.subdomains import RegionSolves
@@ -173,7 +173,10 @@ class MechanicalSystem:
     materials : dict tissue code → material
     constraints : Constraints
     A0 : (N, 3, 3, 3, 3) float
-        Reference tangent A(F = I) per node, N/cm² (moduli of the stabilisation).
+        Reference tangent A(F = I) per node, N/cm² (moduli of the stabilisation). Kept as the
+        attribute ``A0`` only where a later assembly needs it (a stabilisation with a non-scalar
+        modulus; else None: 0.18 GB at 295k nodes); ``shear0`` (N,) keeps its shear moduli
+        (:func:`.volumetric.shear_moduli`, the scale of the pressure mass).
     stabilization : StabilizationConfig or None
         NSNI settings (``None``: no stabilisation).
     patch : (3,) int or None
@@ -209,22 +212,16 @@ class MechanicalSystem:
         self._stab_local = None
         self._penalty_local = None
         if stabilization is not None:
-            H, C = stabilization_operators(scni, A0, coefficient=stabilization.coefficient,
-                                           modulus=stabilization.modulus)
-            self.stab = ConstantStiffness(H, C)
-            if self.stab.scalar:  # L holds all of it: the face gradients are not needed again (0.3 GB at 74k)
-                # the preconditioner's stand-in takes L from the factors cut near their cells
-                # (local_operator): L itself cut to near pairs has negative eigenvalues
-                wide = self._wide()
-                cut = []
-                for k in range(len(H)):  # each axis's operators let go once cut (not all of H beside all of the cut)
-                    cut.append([local_operator(M, np.arange(self.n_nodes), model.ijk, LOCAL_RADIUS, wide, LOCAL_TOL)
-                                for M in H[k]])
-                    H[k] = None
-                self._stab_local = ConstantStiffness(cut, C).L.matrix
-                del cut
+            C = stabilization_moduli(scni, A0, coefficient=stabilization.coefficient, modulus=stabilization.modulus)
+            if ConstantStiffness.is_scalar(C):  # L holds all of it: the face gradients are not needed again (0.3 GB at 74k)
+                self.stab, self._stab_local = self._scalar_stabilization(C)
                 scni.dpsi_faces = None
-            del H, C
+            else:
+                self.stab = ConstantStiffness(gradient_differences(scni), C)
+            del C
+        self.shear0 = shear_moduli(A0)
+        if self.stab is None or self.stab.scalar:  # no later assembly reads the reference moduli
+            self.A0 = None
         self._main = None
         self._support = None
         self._g_positions = None
@@ -243,6 +240,28 @@ class MechanicalSystem:
         self.inert = None
         self._psi_nodes = None
         self.timings = {"material_s": 0.0, "assembly_s": 0.0, "n_evaluate": 0, "n_assembly": 0}
+
+    def _scalar_stabilization(self, C: np.ndarray) -> tuple[ConstantStiffness, sp.csr_matrix]:
+        """The NSNI stiffness with a scalar modulus (``C`` of :func:`.stabilization.stabilization_moduli`)
+        and the same term made from its operators cut near their cells, for the preconditioner's
+        stand-in (:func:`.assembly.local_operator`; L itself cut to near pairs has negative
+        eigenvalues). Each of the nine operators H[k][J] is made when the sum asks for it, cut, and let
+        go: one is held at a time, not all nine (1.7 GB at 295k nodes)."""
+        n, c = self.n_nodes, C[:, 0, 0]
+        wide = self._wide()
+        own = np.arange(n)
+        cut = [[], [], []]
+
+        def terms():
+            for k in range(3):
+                for J in range(3):
+                    H = gradient_difference(self.scni, k, J)
+                    yield H, c[k * n:(k + 1) * n]
+                    cut[k].append(local_operator(H, own, self.model.ijk, LOCAL_RADIUS, wide, LOCAL_TOL))
+                    del H
+
+        stab = ConstantStiffness.scalar_from(terms(), n)
+        return stab, ConstantStiffness(cut, C).L.matrix
 
     def stabilization_force(self, d: np.ndarray) -> np.ndarray | None:
         """K_s d (N, 3), N; ``None`` without stabilisation."""
@@ -298,23 +317,57 @@ class MechanicalSystem:
             return None
         S = sp.csr_matrix(self.support)
         S.sort_indices()
-        rows = np.repeat(np.arange(S.shape[0], dtype=np.int64), np.diff(S.indptr))
-        cut = local_rows_csr(S.indptr, S.indices, self._support_gradients(), self.model.ijk, LOCAL_RADIUS, wide,
-                             LOCAL_TOL)
-        kept = np.any(cut != 0.0, axis=1)
-        Sc = sp.csr_matrix((np.ones(kept.sum(), np.float32), (rows[kept], S.indices[kept])), shape=S.shape)
+        sptr = np.asarray(S.indptr, np.int64)
+        kept, counts = [], []
+        for c0, c1 in Assembler.blocks_of(sptr):  # by blocks of cells: one block's gradients at a time
+            ptr = sptr[c0:c1 + 1] - sptr[c0]
+            cut = local_rows_csr(ptr, S.indices[sptr[c0]:sptr[c1]], self._support_gradients((c0, c1)), self.model.ijk,
+                                 LOCAL_RADIUS, wide, LOCAL_TOL, own=np.arange(c0, c1))
+            k = np.any(cut != 0.0, axis=1)
+            kept.append(k)
+            counts.append(np.bincount(np.repeat(np.arange(c1 - c0), np.diff(ptr))[k], minlength=c1 - c0))
+            del cut
+        kept = np.concatenate(kept)
+        indptr = np.concatenate([[0], np.cumsum(np.concatenate(counts))])
+        Sc = sp.csr_matrix((np.ones(indptr[-1], np.float32), S.indices[kept], indptr), shape=S.shape)
+        del kept
         P = (Sc.T @ Sc).tocsr() + sp.identity(self.n_nodes, np.float32, format="csr")
         for M in [*self._local_penalty(), *([self._stab_local] if self._stab_local is not None else [])]:
             P = P + sp.csr_matrix((np.ones(M.nnz, np.float32), M.indices, M.indptr), shape=M.shape)
         P.data[:] = 1.0
         return P
 
-    def _support_gradients(self) -> np.ndarray:
+    def _support_gradients(self, cells: np.ndarray | tuple[int, int] | None = None) -> np.ndarray:
         """The smoothed gradients on the support layout (:meth:`.Assembler.on_support`), (nnz(S), 3),
         cm⁻¹: made for each fill from the compact gradients ``scni.G`` and their positions in the
         layout (kept: 4 bytes per entry of G, where the layout's values took 24 per entry of the
-        support, about twice as many: 0.5 GB at 295k nodes)."""
-        return scatter_support(self.support.nnz, self.scni.G, self._gradient_positions())
+        support, about twice as many: 0.5 GB at 295k nodes).
+
+        ``cells``, an array of cells or a range (c0, c1): the entries of those cells' rows of the
+        layout only, one row after the other in the order given (a fill by blocks of cells, or of a
+        region's cells, holds those, not the whole layout's 1 GB at 295k nodes)."""
+        positions = self._gradient_positions()
+        if cells is None:
+            return scatter_support(self.support.nnz, self.scni.G, positions)
+        cells = np.arange(*cells) if isinstance(cells, tuple) else np.asarray(cells, np.int64)
+        sptr = np.asarray(self.support.indptr, np.int64)
+        count = sptr[cells + 1] - sptr[cells]
+        first = np.cumsum(count) - count  # where each cell's row starts in the result
+        out = np.zeros((int(count.sum()), 3))
+        for k, (M, pos) in enumerate(zip(self.scni.G, positions, strict=True)):
+            gptr = np.asarray(M.indptr, np.int64)
+            gc = gptr[cells + 1] - gptr[cells]
+            which = np.repeat(np.arange(cells.size), gc)
+            idx = np.repeat(gptr[cells] - (np.cumsum(gc) - gc), gc) + np.arange(int(gc.sum()))  # the cells' entries of G[k]
+            np.add.at(out[:, k], pos[idx] - sptr[cells][which] + first[which], M.data[idx])
+        return out
+
+    def _fill_cells(self, asm: Assembler, A: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """Add Σ_L V_L B̃_Lᵀ A_L B̃_L to ``out`` on ``asm``'s pattern, by blocks of cells (their gradients
+        made per block, :meth:`_support_gradients`)."""
+        for cells in asm.cell_blocks():
+            asm.fill(self._support_gradients(cells), A, self.scni.volume, out=out, cells=cells)
+        return out
 
     def _gradient_positions(self) -> list[np.ndarray]:
         """Positions of the entries of ``scni.G`` in the support layout (:func:`.assembly.support_positions`),
@@ -529,7 +582,7 @@ class MechanicalSystem:
         elif state.vol is not None:  # the volumetric stiffness node by node, as the nodal energy has it
             a = state.vol.a
             A = A + self.volumetric.bulk[:, None, None, None, None] * np.einsum("nij,nkl->nijkl", a, a)
-        asm.fill(self._support_gradients(), spd_surrogate(A), self.scni.volume, out=data)
+        self._fill_cells(asm, spd_surrogate(A), data)
         self.timings["assembly_s"] += time.perf_counter() - t0
         self.timings["n_assembly"] += 1
         return nonzero_blocks(asm.matrix(data))
@@ -576,9 +629,7 @@ class MechanicalSystem:
         if vol is None:
             return None
         if self._pressure_space is None:
-            from .volumetric import shear_moduli
-
-            shear = vol.Q @ shear_moduli(self.A0)
+            shear = vol.Q @ self.shear0
             free = np.flatnonzero(~vol.held)
             box = np.zeros((vol.n_patches, 3), np.int64)
             box[vol.patch_of] = np.asarray(self.model.ijk) // np.asarray(vol.patch)
