@@ -22,6 +22,9 @@ using ∂_k M = (G_k M + M G_k^T) / s_k + M'_k and M b = H(0). This is exact (no
 
 from __future__ import annotations
 
+import itertools
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -130,34 +133,26 @@ def shape_functions(
 
     counts = np.zeros(n_points, dtype=np.int64)
     cols_parts, psi_parts, dpsi_parts, bad_parts = [], [], [], []
-    start, block = 0, min(n_points, 4096)
-    while start < n_points:
-        stop = min(n_points, start + block)
-        out = _block(
-            points[start:stop],
-            nodes,
-            a,
-            per_node,
-            search,
-            kernel,
-            support_shape,
-            alphas,
-            g0,
-            gradient,
-            compute=not bad_parts and not check_only,
-            empty_bad=singular == "empty",
-        )
-        if out["bad"].size:
-            bad_parts.append(out["bad"] + start)
-        elif not bad_parts and not check_only:
-            counts[start:stop] = out["counts"]
-            cols_parts.append(out["cols"])
-            psi_parts.append(out["psi"])
-            if gradient:
-                dpsi_parts.append(out["dpsi"])
-        per_point = max(out["n_pairs"] / (stop - start), 1.0)
-        start = stop
-        block = max(1, int(PAIRS_PER_BLOCK / per_point))
+
+    def one(span):
+        start, stop = span
+        return start, stop, _block(points[start:stop], nodes, a, per_node, search, kernel, support_shape, alphas, g0,
+                                   gradient, compute=not check_only, empty_bad=singular == "empty")
+
+    # the first block measures the pairs per point, which sizes the others; those run on the
+    # process's threads (numpy's array operations and LAPACK release the GIL), taken in order
+    first = one((0, min(n_points, 4096)))
+    per_point = max(first[2]["n_pairs"] / max(first[1], 1), 1.0)
+    block = max(1, int(PAIRS_PER_BLOCK / per_point))
+    spans = [(lo, min(n_points, lo + block)) for lo in range(first[1], n_points, block)]
+    threads = min(_threads(), len(spans))
+    if threads > 1:
+        with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="pixmuscle-rk") as pool:
+            results = itertools.chain([first], pool.map(one, spans))
+            _collect(results, counts, cols_parts, psi_parts, dpsi_parts, bad_parts, gradient, check_only)
+    else:
+        _collect(itertools.chain([first], map(one, spans)), counts, cols_parts, psi_parts, dpsi_parts, bad_parts,
+                 gradient, check_only)
 
     if bad_parts:
         _raise_bad_points(np.concatenate(bad_parts), points, n_points, dim, order, alphas.shape[0])
@@ -177,6 +172,30 @@ def shape_functions(
         _csr(_concat([part[k] for part in dpsi_parts], float), indices.copy(), indptr.copy(), shape) for k in range(dim)
     ]
     return psi, dpsi
+
+
+def _threads() -> int:
+    """Threads of :func:`shape_functions`: numba's thread count (all cores, or the process's share of
+    them under ``mpiexec``, :func:`pixmuscle.parallel.share_cores`)."""
+    import numba
+
+    return max(1, numba.get_num_threads())
+
+
+def _collect(results, counts, cols_parts, psi_parts, dpsi_parts, bad_parts, gradient, check_only) -> None:
+    """Gather the blocks' results in order; after the first singular point only the singular points
+    are kept (the error reports them all)."""
+    for start, stop, out in results:
+        if out["bad"].size:
+            bad_parts.append(out["bad"] + start)
+        elif not bad_parts and not check_only:
+            counts[start:stop] = out["counts"]
+            cols_parts.append(out["cols"])
+            psi_parts.append(out["psi"])
+            if gradient:
+                dpsi_parts.append(out["dpsi"])
+        if bad_parts:  # the values are of no use any more
+            cols_parts.clear(), psi_parts.clear(), dpsi_parts.clear()
 
 
 def _block(points, nodes, a, per_node, search, kind, support_shape, alphas, g0, gradient, compute, empty_bad=False):
