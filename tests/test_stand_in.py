@@ -13,6 +13,17 @@ from pixmuscle.verify.mechanics import _cfg, mask_model
 CLAMPED = [{"nodes": "z_min", "fix": ["x", "y", "z"]}, {"nodes": "z_max", "fix": ["x", "y", "z"]}]
 
 
+def _l_shaped_leg(shape, corner, spacing):
+    """An L-shaped block of connective tissue (the corner from ``corner`` on cut out of x and y),
+    clamped at both ends, with the projected volumetric energy: (model, cfg, system, state at rest)."""
+    mask = np.ones(shape, bool)
+    mask[corner:, corner:, :] = False
+    model = mask_model(mask, spacing, tissue=2)
+    cfg = _cfg(boundary_conditions=CLAMPED, volumetric={"method": "projected", "patch": [2, 2, 3]})
+    system = build_system(model, cfg)[0]
+    return model, cfg, system, system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.0)
+
+
 def test_local_rows_keep_row_sums_and_first_moments_on_near_nodes_only():
     """Each cut row acts on every linear field as the whole row does, and holds no far entry; a row
     with nothing to cut is left as it was."""
@@ -69,12 +80,7 @@ def test_filtered_stand_in_is_positive_definite_where_dropping_far_pairs_is_not(
     than 2 voxels apart left out has negative eigenvalues; the stand-in within the same pattern does
     not, and it is spectrally close to the full stiffness: K v = λ S v with λ in [0.32, 2.5], a ratio
     of 7.9 (15.6, [0.40, 6.2], when the cut rows kept only their sums, not their first moments)."""
-    mask = np.ones((9, 9, 6), bool)
-    mask[6:, 6:, :] = False
-    model = mask_model(mask, (0.078, 0.078, 0.5), tissue=2)
-    cfg = _cfg(boundary_conditions=CLAMPED, volumetric={"method": "projected", "patch": [2, 2, 3]})
-    system = build_system(model, cfg)[0]
-    state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.0)
+    model, cfg, system, state = _l_shaped_leg((9, 9, 6), 6, (0.078, 0.078, 0.5))
     stand_in = system.preconditioner_matrix(state, 2, volumetric="held")
     full = system.preconditioner_matrix(state, None, volumetric="held").tocoo()
     ijk = np.asarray(model.ijk)
@@ -97,12 +103,7 @@ def test_stand_in_filled_by_blocks_of_cells_is_the_one_filled_at_once(monkeypatc
     from pixmuscle.mechanics import assembly
     from pixmuscle.mechanics.rows import RowAssembler
 
-    mask = np.ones((7, 6, 5), bool)
-    mask[4:, 4:, :] = False
-    model = mask_model(mask, (0.1, 0.1, 0.25), tissue=2)
-    cfg = _cfg(boundary_conditions=CLAMPED, volumetric={"method": "projected", "patch": [2, 2, 3]})
-    system = build_system(model, cfg)[0]
-    state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.1, 0.0)
+    model, cfg, system, state = _l_shaped_leg((7, 6, 5), 4, (0.1, 0.1, 0.25))
     S = system.support
     whole = system._support_gradients()
     cells = np.array([5, 0, 17, 3])  # any cells, in any order: their rows one after the other
