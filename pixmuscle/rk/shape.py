@@ -146,13 +146,13 @@ def shape_functions(
     block = max(1, int(PAIRS_PER_BLOCK / per_point))
     spans = [(lo, min(n_points, lo + block)) for lo in range(first[1], n_points, block)]
     threads = min(_threads(), len(spans))
-    if threads > 1:
-        with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="pixmuscle-rk") as pool:
-            results = itertools.chain([first], pool.map(one, spans))
-            _collect(results, counts, cols_parts, psi_parts, dpsi_parts, bad_parts, gradient, check_only)
-    else:
-        _collect(itertools.chain([first], map(one, spans)), counts, cols_parts, psi_parts, dpsi_parts, bad_parts,
-                 gradient, check_only)
+    pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="pixmuscle-rk") if threads > 1 else None
+    try:
+        results = itertools.chain([first], (map if pool is None else pool.map)(one, spans))
+        _collect(results, counts, cols_parts, psi_parts, dpsi_parts, bad_parts, gradient, check_only)
+    finally:
+        if pool is not None:
+            pool.shutdown()
 
     if bad_parts:
         _raise_bad_points(np.concatenate(bad_parts), points, n_points, dim, order, alphas.shape[0])
@@ -195,7 +195,8 @@ def _collect(results, counts, cols_parts, psi_parts, dpsi_parts, bad_parts, grad
             if gradient:
                 dpsi_parts.append(out["dpsi"])
         if bad_parts:  # the values are of no use any more
-            cols_parts.clear(), psi_parts.clear(), dpsi_parts.clear()
+            for parts in (cols_parts, psi_parts, dpsi_parts):
+                parts.clear()
 
 
 def _block(points, nodes, a, per_node, search, kind, support_shape, alphas, g0, gradient, compute, empty_bad=False):
