@@ -217,19 +217,10 @@ def gram_upper(terms, n: int, blocks: int = GRAM_BLOCKS) -> sp.csr_matrix:
             parts[b] = prod if parts[b] is None else (parts[b] + prod).tocsr()
             del prod
         del B, BT
-    index = np.int32 if n < np.iinfo(np.int32).max else np.int64
-    counts = [np.zeros(1, np.int64)]
-    for b, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
-        if parts[b] is None:
-            parts[b] = sp.csr_matrix((int(hi - lo), n))
-        parts[b].sort_indices()
-        counts.append(np.diff(parts[b].indptr).astype(np.int64))
-    indptr = np.cumsum(np.concatenate(counts))
-    data = np.concatenate([p.data for p in parts])
-    indices = np.concatenate([p.indices.astype(index, copy=False) for p in parts])
-    del parts
-    U = sp.csr_matrix((data, indices, indptr), shape=(n, n))
-    U.has_sorted_indices = True
+    parts = [sp.csr_matrix((int(hi - lo), n)) if p is None else p
+             for p, lo, hi in zip(parts, edges[:-1], edges[1:], strict=True)]
+    U = sp.vstack(parts, format="csr")
+    U.sort_indices()
     return U
 
 
