@@ -63,7 +63,6 @@ def test_mixed_operator_shares_its_gradient_products():
     """The mixed operator's fused product (one gradient and one transposed-gradient product for K_d x,
     w Gᵀ q and w G x) equals the blocks applied one by one, with held single-node patches in K_d."""
     from pixmuscle.mechanics.linsolve.mixed_method import MixedOperator
-    from pixmuscle.mechanics.tangent import MatrixFreeTangent
 
     model, system = _system(held="own", penalty={"at": "nodes", "beta": 3.0e4})
     rng = np.random.default_rng(3)
@@ -71,8 +70,7 @@ def test_mixed_operator_shares_its_gradient_products():
     vol = system.volumetric
     assert vol.held.any()
     full = system.tangent_operator(state)
-    Kd = MatrixFreeTangent(full.main, full.C, stab=full.stab, penalty=full.penalty,
-                           volumetric=(vol.restricted(vol.held), state.vol))
+    Kd = full.with_volumetric((vol.restricted(vol.held), state.vol))
     free = np.flatnonzero(~vol.held)
     G = PatchDivergence(full.main.B, full.main.BT, state.vol.a, vol.Q[free])
     D = vol.vp[free] * vol.kbar[free]
@@ -213,6 +211,47 @@ def test_mixed_solve_rebuilds_a_stale_preconditioner_within_the_solve():
     cold = solver.info["iterations"]
     assert continued < cold and solver.policy.rate0 == pytest.approx(cold / 8)
     assert np.linalg.norm(K @ x - r) <= 1e-8 * np.linalg.norm(r)
+
+
+def test_a_released_solver_builds_afresh_and_gives_the_same_update():
+    """release() drops the mixed operator, the hierarchy and the region factors (what the driver does
+    after the last load step); a later prepare builds them again from the tangent, and the update
+    equals the one before the release and the direct solution of the assembled condensed tangent."""
+    model, system = _system()
+    state = system.evaluate(np.zeros((model.n_nodes, 3)), 0.5, 0.6)
+    solver = make_solver("mixed_amg", model.X, ijk=model.ijk, rtol=1e-10)
+    solver.prepare(system, state)
+    r = state.r.ravel()
+    before = solver.solve(r, rtol=1e-9)
+    solver.release()
+    assert solver._M is None and solver._mixed is None
+    assert all(part.C is None for part in solver._regions.parts)
+    solver.prepare(system, state)
+    assert solver.info["preconditioner_builds"] == 2
+    after = solver.solve(r, rtol=1e-9)
+    ref = spla.spsolve(system.stiffness(state).tocsc(), r)
+    assert np.linalg.norm(after - before) <= 1e-7 * np.linalg.norm(ref)
+    assert np.linalg.norm(after - ref) <= 1e-7 * np.linalg.norm(ref)
+
+
+def test_displacement_moduli_of_some_nodes_are_those_of_the_whole_model():
+    """The moduli of K_d at a set of nodes, made without a whole-model array, equal V_L (A_L + K_L a_L⊗a_L
+    at the held single-node patches' nodes) written out with the whole model's arrays, and leave the
+    state's moduli as they were."""
+    model, system = _system(held="own", penalty={"at": "nodes", "beta": 3.0e4})
+    rng = np.random.default_rng(5)
+    state = system.evaluate(0.02 * rng.standard_normal((model.n_nodes, 3)), 0.5, 0.4)
+    vol = system.volumetric
+    held = vol.held[vol.patch_of]
+    assert held.any() and not held.all()
+    A0 = state.A.copy()
+    a = state.vol.a
+    ref = state.A + np.where(held, vol.bulk, 0.0)[:, None, None, None, None] * np.einsum("nij,nkl->nijkl", a, a)
+    ref = system.scni.volume[:, None, None] * ref.reshape(-1, 9, 9)
+    cells = rng.permutation(model.n_nodes)[: model.n_nodes // 3]
+    assert np.allclose(system.displacement_moduli(state), ref, rtol=1e-14, atol=0)
+    assert np.allclose(system.displacement_moduli(state, cells), ref[cells], rtol=1e-14, atol=0)
+    assert np.array_equal(state.A, A0)
 
 
 def _carried_state():

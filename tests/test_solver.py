@@ -147,6 +147,24 @@ def test_failed_solve_keeps_converged_steps(tmp_path):
     assert len(res.newton["residual_norm"]) > 0
 
 
+def test_results_take_the_step_arrays_over_without_holding_them_twice():
+    """Results.from_steps stacks each step's nodal arrays as numpy.stack does, and lets each step's
+    own array go (None in its dictionary) as soon as it is copied."""
+    from pixmuscle.mechanics.results import Results
+
+    model = mask_model(np.ones((2, 2, 3), bool), (0.2, 0.2, 0.3), tissue=1)
+    n, rng = model.n_nodes, np.random.default_rng(0)
+    shapes = {"u": (n, 3), "d": (n, 3), "cauchy": (n, 6), "max_principal": (n,)}
+    steps = [dict(alpha=0.1 * k, t=0.5 * k, iterations=2, cutbacks=0, rows=[], reaction={"z_max": np.ones(3)},
+                  prescribed={"z_max": np.zeros(3)}, **{key: rng.standard_normal(shape) for key, shape in shapes.items()})
+             for k in range(3)]
+    ref = {key: np.stack([s[key] for s in steps]) for key in shapes}
+    res = Results.from_steps(model, steps, n_steps=2)
+    for key in shapes:
+        np.testing.assert_array_equal(getattr(res, key), ref[key])
+        assert all(s[key] is None for s in steps)
+
+
 def test_run_solve_writes_results_schema(tmp_path):
     """End to end: model file → solve stage → results file readable by the report's reader."""
     from pixmuscle.stages.solve import run_solve
@@ -539,7 +557,6 @@ def test_component_factors_share_one_pardiso_analysis_and_solve_each_block_exact
     assert len({id(p._handle()[1]) for p in shared.parts}) == 1
     assert not shared.definite and shared.info["negative_pivots"] == K.shape[0] // 3
     assert shared.info["memory_kB"] < apart.info["memory_kB"]
-    assert shared.info["analysis_s"] < apart.info["analysis_s"]
     shared.release()
     shared.factorize(lambda: K)
     assert np.allclose(shared.solve(r), ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())

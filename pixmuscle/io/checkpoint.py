@@ -105,7 +105,9 @@ def save_checkpoint(path: str | Path, records: Sequence[StepRecord], *, key: str
         }
         for name, v in cols.items():
             st.create_dataset(name, data=np.asarray(v, np.int64 if name in ("step", "iterations", "cutbacks") else float))
-        st.create_dataset("d", data=np.stack([np.asarray(r.state.d, float) for r in records]))
+        d = st.create_dataset("d", shape=(len(records), *np.shape(records[0].state.d)), dtype=float)
+        for i, r in enumerate(records):  # row by row: no (S, N, 3) copy of the records' d
+            d[i] = np.asarray(r.state.d, float)
         inc = records[-1].increment if records else None
         if inc is not None:
             g = f.create_group("increment")

@@ -57,6 +57,16 @@ def max_principal(voigt: np.ndarray) -> np.ndarray:
     return np.linalg.eigvalsh(T)[..., -1]
 
 
+def _moved(steps: list[dict], key: str, shape: tuple) -> np.ndarray:
+    """The per-step arrays ``steps[i][key]`` (each ``shape``) stacked as (S, *shape) float; each is
+    set to None in its step as soon as it is copied."""
+    out = np.empty((len(steps), *shape))
+    for i, step in enumerate(steps):
+        out[i] = np.reshape(step[key], shape)
+        step[key] = None
+    return out
+
+
 @dataclasses.dataclass
 class NodeEllipticity:
     """Strong ellipticity of the material law at the nodes, at one stored state.
@@ -198,7 +208,9 @@ class Results:
                    n_steps: int = 0, constrained: dict | None = None, info: dict | None = None,
                    sign_convention: str = "", constraint_gap: dict | None = None,
                    warnings: Sequence[str] = (), ellipticity: NodeEllipticity | None = None) -> Results:
-        """Collect the per-step dictionaries of :func:`pixmuscle.mechanics.solve.solve`."""
+        """Collect the per-step dictionaries of :func:`pixmuscle.mechanics.solve.solve`; their nodal
+        arrays (``u``, ``d``, ``cauchy``, ``max_principal``) are moved into the results (set to None
+        in the dictionaries as they are copied, so that they are not held twice)."""
         n = model.n_nodes
         s1 = len(steps)
         names = list(steps[0]["reaction"]) if steps else list(constrained or {})
@@ -212,13 +224,13 @@ class Results:
             converged=np.ones(s1, bool),
             iterations=np.array([s["iterations"] for s in steps], np.int64),
             cutbacks=np.array([s["cutbacks"] for s in steps], np.int64),
-            u=np.array([s["u"] for s in steps], float).reshape(s1, n, 3),
-            d=np.array([s["d"] for s in steps], float).reshape(s1, n, 3),
+            u=_moved(steps, "u", (n, 3)),
+            d=_moved(steps, "d", (n, 3)),
             reaction={k: np.array([s["reaction"][k] for s in steps], float).reshape(s1, 3) for k in names},
             prescribed={k: np.array([s["prescribed"][k] for s in steps], float).reshape(s1, 3) for k in names},
             constrained={k: np.asarray(v, bool) for k, v in (constrained or {}).items()},
-            cauchy=np.array([s["cauchy"] for s in steps], float).reshape(s1, n, 6),
-            max_principal=np.array([s["max_principal"] for s in steps], float).reshape(s1, n),
+            cauchy=_moved(steps, "cauchy", (n, 6)),
+            max_principal=_moved(steps, "max_principal", (n,)),
             newton=newton, status=status, n_steps_planned=int(n_steps), info=dict(info or {}),
             sign_convention=sign_convention, constraint_gap=dict(constraint_gap or {}), warnings=list(warnings),
             ellipticity=ellipticity,

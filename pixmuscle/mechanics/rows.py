@@ -121,9 +121,9 @@ class RowAssembler:
         data = self._constant()
         vol = self.system.volumetric
         pressure_free = pressure_free and vol is not None
-        A = self.system.held_volumetric(state, state.A) if pressure_free else state.A
+        A = self.system.held_volumetric(state, state.A, self.cells) if pressure_free else state.A[self.cells]
         g = self.gradients()
-        self.asm.fill(g, A[self.cells], self.volume, out=data)
+        self.asm.fill(g, A, self.volume, out=data)
         if vol is not None and not pressure_free:
             wv = (vol.volume / vol.vp[vol.patch_of])[self.cells]
             v = self.asm.patch_vectors(g, state.vol.a[self.cells], wv, self.local_patch)

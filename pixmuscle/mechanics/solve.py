@@ -218,10 +218,13 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
         if inc is not None:
             inc = (system.gather(inc[0]), inc[1])
         mem = rec.solver if replay else system.memory_for_checkpoint(linsolver.memory())
+        if done:  # a checkpoint keeps the last record's increment and solver memory only (io.checkpoint)
+            done[-1] = dataclasses.replace(done[-1], increment=None, solver=None)
         done.append(dataclasses.replace(rec, state=_newton.SavedState(out["d"], st.t, st.alpha),  # no F, P, A kept
                                         increment=inc, solver=mem))
         if on_checkpoint is not None and not replay and root:
             on_checkpoint(done)
+        release_free_heap()  # the step's freed temporaries: pages held in the heap's holes would add up over the steps
         _LOG.log(logging.DEBUG if replay else logging.INFO, "load step %d of %d: α = %.4g, load factor %.4g, %d Newton iterations, %d cutbacks, relative residual %.2e",
                   rec.step, cfg.steps, steps[-1]["alpha"], rec.t, rec.iterations, rec.cutbacks, last_rel)
         if progress is not None:
@@ -264,6 +267,8 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
         failed_rows = getattr(exc, "rows", [])
     else:
         failed_rows = []
+    linsolver.release()  # the preconditioner does not share the peak with the last evaluation and the results
+    done.clear()  # each step's d is then held by its results row only, which Results.from_steps moves
     info.update(total_s=time.perf_counter() - t_start, linear_setup_s=lin_time["setup_s"],
                 linear_solve_s=lin_time["solve_s"], linear_iterations=lin_time["iterations"])
     info.update(linsolver.statistics())

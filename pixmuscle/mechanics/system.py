@@ -502,13 +502,30 @@ class MechanicalSystem:
         v = asm.patch_vectors(g, state.vol.a, wv, vol.patch_of)
         asm.fill_patches(v, vol.vp * vol.kbar, out)
 
-    def held_volumetric(self, state: State, A: np.ndarray) -> np.ndarray:
+    def held_volumetric(self, state: State, A: np.ndarray, cells: np.ndarray | None = None) -> np.ndarray:
         """A plus the nodal volumetric tangent K_L a_L⊗a_L at the nodes of held single-node patches:
-        their patch terms, which stay in the displacement block of the mixed form."""
+        their patch terms, which stay in the displacement block of the mixed form.
+
+        Parameters
+        ----------
+        state : State
+        A : (N, 3, 3, 3, 3) float
+            Tangent moduli per node, N/cm².
+        cells : (n,) int, optional
+            The nodes whose moduli are wanted (default: all).
+
+        Returns
+        -------
+        (n, 3, 3, 3, 3) float
+            A new array (A is not changed), N/cm².
+        """
         vol = self.volumetric
-        bulk = np.where(vol.held[vol.patch_of], vol.bulk, 0.0)
-        a = state.vol.a
-        return A + bulk[:, None, None, None, None] * np.einsum("nij,nkl->nijkl", a, a)
+        nodes = np.arange(A.shape[0]) if cells is None else np.asarray(cells)
+        out = np.array(A if cells is None else A[nodes], dtype=np.float64)
+        held = np.flatnonzero(vol.held[vol.patch_of[nodes]])  # the terms only where they are not zero
+        a = state.vol.a[nodes[held]]
+        out[held] += vol.bulk[nodes[held], None, None, None, None] * np.einsum("nij,nkl->nijkl", a, a)
+        return out
 
     def stiffness(self, state: State, pressure_free: bool = False) -> sp.bsr_matrix:
         """Consistent tangent K = Σ_L V_L B̃ᵀ A_L B̃ + K_stab + K_pen (BSR, 3N × 3N), N/cm.
@@ -542,15 +559,20 @@ class MechanicalSystem:
 
     def tangent_operator(self, state: State) -> MatrixFreeTangent:
         """The consistent tangent of :meth:`stiffness` as a matrix-free operator (3N × 3N), N/cm."""
-        C = (self.scni.volume[:, None, None] * state.A.reshape(-1, 9, 9))
         vol = None if self.volumetric is None else (self.volumetric, state.vol)
-        return MatrixFreeTangent(self.product_form, C, stab=self.stab, penalty=self.penalty, volumetric=vol)
+        return MatrixFreeTangent(self.product_form, state.A.reshape(-1, 9, 9), self.scni.volume, stab=self.stab,
+                                 penalty=self.penalty, volumetric=vol)
 
-    def displacement_moduli(self, state: State) -> np.ndarray:
-        """V_L A_L per node (N, 9, 9), N·cm, of the displacement block K_d of the mixed form: the
-        tangent plus, at the nodes of held single-node patches, their volumetric term."""
-        A = state.A if self.volumetric is None else self.held_volumetric(state, state.A)
-        return self.scni.volume[:, None, None] * A.reshape(-1, 9, 9)
+    def displacement_moduli(self, state: State, cells: np.ndarray | None = None) -> np.ndarray:
+        """V_L A_L per node (n, 9, 9), N·cm, of the displacement block K_d of the mixed form at the
+        nodes ``cells`` (n,) int (default: all): the tangent plus, at the nodes of held single-node
+        patches, their volumetric term. A new array, made without a whole-model temporary."""
+        nodes = slice(None) if cells is None else np.asarray(cells)
+        if self.volumetric is None:
+            return self.scni.volume[nodes, None, None] * state.A[nodes].reshape(-1, 9, 9)
+        C = self.held_volumetric(state, state.A, cells).reshape(-1, 9, 9)
+        C *= self.scni.volume[nodes, None, None]
+        return C
 
     def preconditioner_matrix(self, state: State, reach: int = 2, volumetric: str = "nodal") -> sp.bsr_matrix:
         """Filtered positive definite stand-in of the tangent for preconditioning (BSR, 3N × 3N), N/cm.
@@ -609,8 +631,7 @@ class MechanicalSystem:
         state, lends its moduli (no second (N, 9, 9) array). Projected volumetric energy only."""
         full = self.tangent_operator(state) if tangent is None else tangent
         vol = self.volumetric
-        return MatrixFreeTangent(full.main, full.C, stab=full.stab, penalty=full.penalty,
-                                 volumetric=(vol.restricted(vol.held), state.vol))
+        return full.with_volumetric((vol.restricted(vol.held), state.vol))
 
     def owned_rows(self, owned: np.ndarray) -> RowAssembler:
         """The rows of the tangent of the nodes ``owned`` (n,) int, for :meth:`.rows.RowAssembler.rows`

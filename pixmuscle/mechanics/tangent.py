@@ -25,9 +25,11 @@ from .threaded import ThreadedCSR
 
 
 @numba.njit(cache=True, parallel=True)
-def _contract(C, g, n, out):  # pragma: no cover - compiled
-    """out[q, J, L, i] = Σ_{k, K} C[q·n + L, 3i + J, 3k + K] g[q, K, L, k] for every group q and node L."""
+def _contract(C, w, g, n, out):  # pragma: no cover - compiled
+    """out[q, J, L, i] = w[q·n + L] Σ_{k, K} C[q·n + L, 3i + J, 3k + K] g[q, K, L, k] for every group q
+    and node L (w of size 0: no weight). Weighting here keeps the moduli as given (no scaled copy)."""
     ng = g.shape[0]
+    weighted = w.size > 0
     for p in numba.prange(ng * n):
         q = p // n
         L = p - q * n
@@ -38,7 +40,11 @@ def _contract(C, g, n, out):  # pragma: no cover - compiled
                 for k in range(3):
                     for K in range(3):
                         s += C[p, a, 3 * k + K] * g[q, K, L, k]
-                out[q, J, L, i] = s
+                out[q, J, L, i] = w[p] * s if weighted else s
+
+
+#: the weight of :func:`_contract` that leaves the moduli as they are
+_UNWEIGHTED = np.empty(0)
 
 
 #: row blocks of a transposed product Bᵀ X (:class:`TransposedCSR`): a fixed number, so that the sums,
@@ -363,8 +369,8 @@ class ProductForm:
         g = (self.B @ V).reshape(self.n_groups, 3, self.n, 3)
         return g.transpose(0, 2, 3, 1)
 
-    def apply(self, C: np.ndarray, V: np.ndarray, extra=None) -> np.ndarray:
-        """Σ_q B_qᵀ (C_q : (B_q V) + extra(∇V)).
+    def apply(self, C: np.ndarray, V: np.ndarray, extra=None, weight: np.ndarray | None = None) -> np.ndarray:
+        """Σ_q B_qᵀ (w_q C_q : (B_q V) + extra(∇V)).
 
         Parameters
         ----------
@@ -374,6 +380,8 @@ class ProductForm:
         extra : callable, optional
             ``extra(grad) -> (N, 3, 3)``: a further stress-like term of the first group's
             gradients ``grad[L, i, J] = ∂V_i/∂X_J`` (already multiplied by the cell volumes).
+        weight : (Q·N,) float, optional
+            A factor w of each node's moduli (the cell volumes, cm³); none by default.
 
         Returns
         -------
@@ -381,7 +389,7 @@ class ProductForm:
         """
         g = np.ascontiguousarray((self.B @ V).reshape(self.n_groups, 3, self.n, 3))
         t = np.empty_like(g)
-        _contract(C, g, self.n, t)
+        _contract(C, _UNWEIGHTED if weight is None else weight, g, self.n, t)
         if extra is not None:
             t[0] += extra(g[0].transpose(1, 2, 0)).transpose(2, 0, 1)
         return self.BT @ t.reshape(-1, 3)
@@ -432,7 +440,7 @@ class RowProduct:
         """(K Z)_R, (n, 3), for the moduli of :attr:`cells` C (n_h, 9, 9) and nodal values Z (N, 3)."""
         g = np.ascontiguousarray((self.Bh @ Z).reshape(1, 3, self.n_cells, 3))
         t = np.empty_like(g)
-        _contract(np.ascontiguousarray(C), g, self.n_cells, t)
+        _contract(np.ascontiguousarray(C), _UNWEIGHTED, g, self.n_cells, t)
         return self.BhT @ t.reshape(-1, 3)
 
 
@@ -510,7 +518,9 @@ class MatrixFreeTangent(spla.LinearOperator):
     main : ProductForm
         SCNI gradient operators (one group).
     C : (N, 9, 9) float
-        V_L A_L per node (N·cm), the current material tangent times the cell volume.
+        The current material tangent A_L per node, N/cm² (held as given: a state's own array).
+    volume : (N,) float
+        Cell volumes V_L, cm³: the moduli of the product are V_L A_L (N·cm).
     stab : ConstantStiffness or None
         The NSNI stiffness.
     penalty : list of 3 sparse (N × N) or None
@@ -519,14 +529,22 @@ class MatrixFreeTangent(spla.LinearOperator):
         Rank-one patch terms of a projected volumetric energy (:mod:`.volumetric`).
     """
 
-    def __init__(self, main: ProductForm, C: np.ndarray, stab=None, penalty=None, volumetric=None):
+    def __init__(self, main: ProductForm, C: np.ndarray, volume: np.ndarray, stab=None, penalty=None,
+                 volumetric=None):
         n = main.n
         super().__init__(np.float64, (3 * n, 3 * n))
         self.main = main
         self.C = np.ascontiguousarray(C, dtype=np.float64)
+        self.volume = np.ascontiguousarray(volume, dtype=np.float64)
         self.stab = stab
         self.penalty = penalty
         self.volumetric = volumetric
+
+    def with_volumetric(self, volumetric) -> MatrixFreeTangent:
+        """The same operator with other patch terms ``volumetric`` (as the parameter), sharing the
+        moduli, operators and stiffnesses (no second (N, 9, 9) array)."""
+        return MatrixFreeTangent(self.main, self.C, self.volume, stab=self.stab, penalty=self.penalty,
+                                 volumetric=volumetric)
 
     def _matvec(self, v):
         return self.apply(v)
@@ -539,7 +557,7 @@ class MatrixFreeTangent(spla.LinearOperator):
         term = extra
         if self.volumetric is not None:
             term = self._patch_term if extra is None else (lambda grad: self._patch_term(grad) + extra(grad))
-        y = self.main.apply(self.C, V, extra=term)
+        y = self.main.apply(self.C, V, extra=term, weight=self.volume)
         if self.stab is not None:
             y += self.stab.apply(V)
         if self.penalty is not None:

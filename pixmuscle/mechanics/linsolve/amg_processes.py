@@ -41,6 +41,7 @@ import scipy.sparse as sp
 
 from ...errors import SolverError
 from ...parallel import import_petsc
+from ..heap import release_free_heap
 
 _CMD, _DATA = 11, 12
 _CHUNK = 1 << 26  # elements per message: MPI counts are int
@@ -152,6 +153,13 @@ def group(size: int) -> WorkerGroup:
     if size not in _groups or not _groups[size].open:
         _groups[size] = WorkerGroup(size)
     return _groups[size]
+
+
+def flush_released() -> None:
+    """Free the hierarchies queued for freeing on every open worker group of this process now."""
+    for g in _groups.values():
+        if g.open:
+            g.flush()
 
 
 def refusal(size: int) -> SolverError:
@@ -359,6 +367,7 @@ def _commands(comm) -> None:
             comm.Send(y.getArray(), dest=0, tag=_DATA)
         elif cmd == "free":
             _destroy(held.pop(args[0]))
+            release_free_heap()
         elif cmd == "rss":
             comm.send(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, dest=0, tag=_DATA)
         elif cmd == "stop":

@@ -96,6 +96,12 @@ class LinearSolver:
         name under ``linear_solver`` and whatever counts the backend keeps."""
         return {"linear_solver": self.name}
 
+    def release(self) -> None:
+        """Let go of the factors, preconditioner and operators of the last prepared system (the
+        counters, statistics and :meth:`memory` stay; a later :meth:`prepare` builds afresh). The
+        load-step driver calls it after the last step, before the results are made, so that they
+        do not share the peak with the preconditioner. Default: nothing to let go."""
+
     def memory(self) -> SolverMemory | None:
         """What a resumed solve needs to take this solver's next decisions as the uninterrupted one
         would (a checkpoint keeps it with the last converged step); None: nothing kept, a resumed

@@ -21,7 +21,7 @@ import scipy.sparse as sp
 
 from ...errors import SolverError, SolverGaveUp
 from ..heap import release_free_heap
-from .amg_processes import group
+from .amg_processes import flush_released, group
 from .base import BACKENDS, Iterative, LinearSolver, SolverMemory, built_from, memory_state, pcg
 from .fgmres import fgmres
 from .multigrid import AMG_CHOICES, auto_processes, resolve, v_cycle
@@ -221,6 +221,14 @@ class KrylovAMGSolver(LinearSolver):
         if not rebuilt:  # a solve continued after a rebuild does not show the new hierarchy's rate: the next one does
             self.policy.account(its, rtol)
         return x
+
+    def release(self) -> None:
+        """Drop the hierarchy (on the BoomerAMG workers too) and the tangent operator."""
+        self._M = None
+        self._A = None
+        self._system = self._state = None
+        flush_released()
+        release_free_heap()
 
     @property
     def memory_tag(self) -> str:

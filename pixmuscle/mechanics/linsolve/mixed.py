@@ -237,6 +237,13 @@ class MixedBlockSolver(KrylovAMGSolver):
         self.info["setup_s"] += time.perf_counter() - t0
         self.info["build_s"][-1] += time.perf_counter() - t0
 
+    def release(self) -> None:
+        """Drop the mixed operator and its preconditioner, the region factors and the hierarchy."""
+        self._mixed = self._blocks = None
+        if self._regions is not None:
+            self._regions.release()
+        super().release()
+
     def _refresh(self):
         """After a rebuild of the AMG hierarchy the preconditioner must use the new one."""
         if self._mixed is not None:

@@ -200,6 +200,14 @@ class DisplacementPreconditioner:
             return
         y.setArray(self.regions.correct(r, z)[self.s.own_dofs])  # each rank keeps its own nodes' correction
 
+    def release(self) -> None:
+        """Destroy the multigrid and drop the region factors (the next :meth:`build` makes both)."""
+        if self.amg is not None:
+            self.amg.destroy()
+            self.amg = None
+        if self.regions is not None:
+            self.regions.release()
+
     def destroy(self, pc=None) -> None:
         """Nothing: PETSc destroys the split's PC with each Newton system's KSP, and the
         multigrid and region factors outlive it until the next build."""
@@ -445,6 +453,13 @@ class PETScMixedSolver(PETScSolver):
             return
         for obj in (mx["ksp"], mx["A"], *mx["blocks"], mx["b"], mx["z"], mx["t"]):
             obj.destroy()
+
+    def release(self) -> None:
+        """Destroy the last Newton system's PETSc objects and the displacement preconditioner."""
+        self._release()
+        if self._M is not None:
+            self._M.release()
+        release_free_heap()
 
     def _build(self, system, state) -> None:
         """Build the displacement preconditioner (multigrid and region factors) at ``state``."""

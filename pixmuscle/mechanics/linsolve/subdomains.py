@@ -157,11 +157,9 @@ class RegionSolves:
         Each block is assembled on a pattern made for it here; the pattern is let go once the block
         is filled, and the block once the engine has taken what it factorises (PARDISO: the upper
         triangle's values), so neither is held through the numerical factorisation."""
-        C = self.system.displacement_moduli(state)
         for part in self.parts:
-            part.C = np.ascontiguousarray(C[part.rows.cells])
+            part.C = self.system.displacement_moduli(state, part.rows.cells)
             part.factor.factorize(lambda p=part: _region_block(self.system, p, state))
-        del C
 
     def release(self) -> None:
         """Drop the moduli kept for the rows and the numerical factors until the next :meth:`update`
