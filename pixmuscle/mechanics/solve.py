@@ -30,7 +30,7 @@ from . import newton as _newton
 from .boundary import SIGN_CONVENTION
 from .config import SolveConfig
 from .ellipticity import directions
-from .heap import release_free_heap
+from .heap import map_large_allocations, release_free_heap
 from .linsolve import make_solver
 from .results import NodeEllipticity, Results, max_principal
 from .system import (
@@ -166,6 +166,7 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
     """
     cfg = cfg or SolveConfig()
     t_start = time.perf_counter()
+    map_large_allocations()  # freed per-node arrays go back to the system at once, not into the heap's holes
     if activation is None and not cfg.uniform_activation:
         from .activation import activation_ramp
 

@@ -41,7 +41,7 @@ import scipy.sparse as sp
 
 from ...errors import SolverError
 from ...parallel import import_petsc
-from ..heap import release_free_heap
+from ..heap import map_large_allocations, release_free_heap
 
 _CMD, _DATA = 11, 12
 _CHUNK = 1 << 26  # elements per message: MPI counts are int
@@ -330,6 +330,7 @@ def _serve() -> None:
 
     from mpi4py import MPI
 
+    map_large_allocations()  # as the solving process: freed hierarchies go back to the system
     parent = MPI.Comm.Get_parent()
     comm = parent.Merge(high=True)
     comm.send(os.getpid(), dest=0, tag=_DATA)
