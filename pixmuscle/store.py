@@ -288,6 +288,13 @@ def _temp_prefix(name: str) -> str:
     return f".{name}.{socket.gethostname()}.{os.getpid()}."
 
 
+def temporary_path(path: str | os.PathLike, tag: str) -> Path:
+    """A hidden temporary beside ``path`` for this process, ``.<name>.<host>.<pid>.<tag>.partial``:
+    :func:`remove_dead_temporaries` removes it once this process has gone (a killed run)."""
+    p = Path(path)
+    return p.with_name(f"{_temp_prefix(p.name)}{tag}.partial")
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)

@@ -165,6 +165,23 @@ def test_results_take_the_step_arrays_over_without_holding_them_twice():
         assert all(s[key] is None for s in steps)
 
 
+def test_step_store_gives_back_the_steps_it_took(tmp_path):
+    """StepStore: rows appended one step at a time read back as numpy.stack of them; the file is a
+    hidden temporary beside the results file, gone after remove()."""
+    from pixmuscle.io.results import StepStore
+
+    rng = np.random.default_rng(1)
+    steps = [{"u": rng.standard_normal((7, 3)), "max_principal": rng.standard_normal(7)} for _ in range(4)]
+    store = StepStore(tmp_path / "results.h5")
+    assert store.path.parent == tmp_path and store.path.name.startswith(".results.h5.")
+    for fields in steps:
+        store.append(fields)
+    for key in ("u", "max_principal"):
+        np.testing.assert_array_equal(store.read(key), np.stack([f[key] for f in steps]))
+    store.remove()
+    assert not store.path.exists()
+
+
 def test_run_solve_writes_results_schema(tmp_path):
     """End to end: model file → solve stage → results file readable by the report's reader."""
     from pixmuscle.stages.solve import run_solve
@@ -187,6 +204,12 @@ def test_run_solve_writes_results_schema(tmp_path):
     s = res.cauchy[-1]
     T = np.array([[s[:, 0], s[:, 3], s[:, 5]], [s[:, 3], s[:, 1], s[:, 4]], [s[:, 5], s[:, 4], s[:, 2]]]).transpose(2, 0, 1)
     assert np.allclose(res.max_principal[-1], np.linalg.eigvalsh(T)[:, -1])
+    # the stage's steps went through a step store (a file, removed): the same fields as a solve in memory
+    assert not list(tmp_path.glob(".*.partial"))
+    mem = solve(model, parse_section(SolveConfig, cfg, "solve"))
+    for key in ("u", "d", "cauchy", "max_principal"):
+        np.testing.assert_array_equal(getattr(res, key), getattr(mem, key))
+    assert res.constraint_gap == mem.constraint_gap
     lazy = load_results(out)
     assert lazy.n_states == 3 and set(lazy.reaction) == {"z_min", "z_max"}
     np.testing.assert_array_equal(lazy.u[2], res.u[2])

@@ -15,12 +15,13 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import h5py
 import numpy as np
 
 from ..errors import InputError
 from ..mechanics.results import NEWTON_COLUMNS, NodeEllipticity, Results
 from ..model.tissues import NODE_TISSUES
-from ..store import open_stage, write_dataset, write_stage
+from ..store import open_stage, temporary_path, write_dataset, write_stage
 from .model import read_model_groups, write_model_groups
 
 SCHEMA = "pixmuscle.results"
@@ -90,6 +91,51 @@ def _json_attr(attrs, key: str, default):
         return json.loads(_text(raw))
     except json.JSONDecodeError:
         return default
+
+
+class StepStore:
+    """The nodal fields of a running solve's converged steps, on disk until the results are made.
+
+    A solve that is given a store appends each step's ``u``, ``cauchy`` and ``max_principal`` to it
+    as soon as the step has converged (:func:`pixmuscle.mechanics.solve.solve`), so that the
+    memory a sweep holds does not grow with its load steps by 10 float64 per node and step
+    (0.24 GB over the 11 states of a 295k-node sweep). One HDF5 file, a hidden temporary beside the
+    results file (:func:`pixmuscle.store.temporary_path`: one a killed run leaves is removed by the
+    next write of the results), one dataset per field with a row per step.
+
+    Parameters
+    ----------
+    results_path : path-like
+        The results file the steps are for.
+    """
+
+    def __init__(self, results_path: str | Path):
+        self.path = temporary_path(results_path, "steps")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with h5py.File(self.path, "w"):
+            pass
+        self.rows = 0
+
+    def append(self, fields: Mapping[str, np.ndarray]) -> None:
+        """Store one step's arrays (the same names and shapes at every step), float64."""
+        with h5py.File(self.path, "a") as f:
+            for name, value in fields.items():
+                value = np.asarray(value, float)
+                if name not in f:
+                    f.create_dataset(name, shape=(0, *value.shape), maxshape=(None, *value.shape),
+                                     chunks=(1, *value.shape), dtype=float)
+                ds = f[name]
+                ds.resize(self.rows + 1, axis=0)
+                ds[self.rows] = value
+        self.rows += 1
+
+    def read(self, name: str) -> np.ndarray:
+        """Every stored step's ``name``, stacked: (S, ...)."""
+        with h5py.File(self.path, "r") as f:
+            return np.asarray(f[name][()])
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
 
 
 def write_results_groups(f, res: Results) -> None:

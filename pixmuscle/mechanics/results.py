@@ -207,11 +207,20 @@ class Results:
     def from_steps(cls, model: Model, steps: list[dict], *, failed_rows: Sequence = (), status: str = "complete",
                    n_steps: int = 0, constrained: dict | None = None, info: dict | None = None,
                    sign_convention: str = "", constraint_gap: dict | None = None,
-                   warnings: Sequence[str] = (), ellipticity: NodeEllipticity | None = None) -> Results:
+                   warnings: Sequence[str] = (), ellipticity: NodeEllipticity | None = None,
+                   stacked: dict | None = None) -> Results:
         """Collect the per-step dictionaries of :func:`pixmuscle.mechanics.solve.solve`; their nodal
         arrays (``u``, ``d``, ``cauchy``, ``max_principal``) are moved into the results (set to None
-        in the dictionaries as they are copied, so that they are not held twice)."""
+        in the dictionaries as they are copied, so that they are not held twice). ``stacked`` gives
+        some of them for all steps at once instead, (S, N, …) (read back from a step store)."""
         n = model.n_nodes
+        stacked = dict(stacked or {})
+
+        def field(key, shape):
+            if key in stacked:
+                return np.asarray(stacked.pop(key), float).reshape(len(steps), *shape)
+            return _moved(steps, key, shape)
+
         s1 = len(steps)
         names = list(steps[0]["reaction"]) if steps else list(constrained or {})
         rows = [r for s in steps for r in s["rows"]] + list(failed_rows)
@@ -224,13 +233,13 @@ class Results:
             converged=np.ones(s1, bool),
             iterations=np.array([s["iterations"] for s in steps], np.int64),
             cutbacks=np.array([s["cutbacks"] for s in steps], np.int64),
-            u=_moved(steps, "u", (n, 3)),
-            d=_moved(steps, "d", (n, 3)),
+            u=field("u", (n, 3)),
+            d=field("d", (n, 3)),
             reaction={k: np.array([s["reaction"][k] for s in steps], float).reshape(s1, 3) for k in names},
             prescribed={k: np.array([s["prescribed"][k] for s in steps], float).reshape(s1, 3) for k in names},
             constrained={k: np.asarray(v, bool) for k, v in (constrained or {}).items()},
-            cauchy=_moved(steps, "cauchy", (n, 6)),
-            max_principal=_moved(steps, "max_principal", (n,)),
+            cauchy=field("cauchy", (n, 6)),
+            max_principal=field("max_principal", (n,)),
             newton=newton, status=status, n_steps_planned=int(n_steps), info=dict(info or {}),
             sign_convention=sign_convention, constraint_gap=dict(constraint_gap or {}), warnings=list(warnings),
             ellipticity=ellipticity,

@@ -54,6 +54,10 @@ __all__ = ["solve", "constraint_gap", "ellipticity_warning", "GAP_WARN", "LOCAL_
            "node_ellipticity", "ELLIPTICITY_DIRECTIONS"]
 
 
+#: the per-step nodal fields a solve's ``store`` takes (the displacement coefficients d stay: the
+#: checkpoint records hold them)
+STORED_FIELDS = ("u", "cauchy", "max_principal")
+
 #: a constraint gap is worth a warning above this fraction of the largest displacement and of the voxel
 GAP_WARN = 0.01
 
@@ -66,13 +70,14 @@ def constraint_gap(steps: list[dict], h_min: float) -> dict[str, dict]:
     cm — and ``relative``, the same divided by the largest nodal displacement of the solve (0 when
     nothing moves); ``node_cm`` and ``relative_node``: the same at the constrained nodes themselves
     (for end sets constrained on their end faces, the node layer half a voxel inside the face moves
-    with the tissue between them); ``max_displacement_cm``; ``significant``: the gap exceeds
+    with the tissue between them); ``max_displacement_cm`` (from each step's ``u``, or its
+    ``u_max_cm`` where the step's nodal fields went to a store); ``significant``: the gap exceeds
     :data:`GAP_WARN` of both the largest displacement and the smallest voxel edge ``h_min`` (cm) —
     in a nearly isometric solve a gap of a few µm can be percents of the tiny largest displacement).
     """
     if not steps:
         return {}
-    umax = max(float(np.linalg.norm(s["u"], axis=1).max()) for s in steps)
+    umax = max(s["u_max_cm"] if "u_max_cm" in s else float(np.linalg.norm(s["u"], axis=1).max()) for s in steps)
     out = {}
     for name in steps[0]["gaps"]:
         pt = max(s["gaps"][name]["point_cm"] for s in steps)
@@ -129,7 +134,7 @@ def _build(model: Model, cfg: SolveConfig):
 
 
 def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activation=None, *,
-          resume: list | None = None, on_checkpoint=None) -> Results:
+          resume: list | None = None, on_checkpoint=None, store=None) -> Results:
     """Solve the finite-strain equilibrium of a pixel-point model over the load steps.
 
     Parameters
@@ -150,6 +155,10 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
     on_checkpoint : callable, optional
         Called after each converged step with the list of all converged
         :class:`~.newton.StepRecord` so far (the stage writes them to a checkpoint file).
+    store : object with ``append(fields)`` and ``read(name)``, optional
+        Where each converged step's nodal fields ``u``, ``cauchy`` and ``max_principal`` go as soon as
+        the step has converged (:class:`pixmuscle.io.results.StepStore`, a file), read back when the
+        results are made; default: they are held in memory until then.
 
     Returns
     -------
@@ -213,6 +222,9 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
         steps.append(dict(alpha=rec.alpha if activation is None else activation.mean(rec.alpha), t=rec.t,
                           iterations=rec.iterations, cutbacks=rec.cutbacks, rows=rec.rows, **out))
         steps[-1]["max_principal"] = None if out["cauchy"] is None else max_principal(out["cauchy"])
+        if store is not None and out["cauchy"] is not None:  # not held until the end (under MPI: rank 0's)
+            steps[-1]["u_max_cm"] = float(np.linalg.norm(out["u"], axis=1).max())  # constraint_gap's scale
+            store.append({name: steps[-1].pop(name) for name in STORED_FIELDS})
         last_rel = rec.rows[-1].relative_residual if rec.rows else 0.0
         # the checkpoint's records hold the whole model's d (rank 0 writes them)
         inc = rec.increment
@@ -296,7 +308,8 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
             error.results = None
             raise error
         return None
-    results = Results.from_steps(model, steps, failed_rows=failed_rows, status=status, n_steps=cfg.steps,
+    stacked = {name: store.read(name) for name in STORED_FIELDS} if store is not None and steps else None
+    results = Results.from_steps(model, steps, stacked=stacked, failed_rows=failed_rows, status=status, n_steps=cfg.steps,
                                  constrained=constrained, info=info,
                                  sign_convention=SIGN_CONVENTION, constraint_gap=gaps, warnings=warnings,
                                  ellipticity=ellipticity)

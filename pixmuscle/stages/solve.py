@@ -14,7 +14,7 @@ from ..imaging.nifti import load_volume
 from ..io.checkpoint import checkpoint_key, checkpoint_path, load_checkpoint, save_checkpoint
 from ..io.lineage import capture_warnings, stage_attrs
 from ..io.model import load_model
-from ..io.results import save_results
+from ..io.results import StepStore, save_results
 from ..mechanics.activation import ActivationRamp, activation_ramp, per_muscle_summary
 from ..mechanics.boundary import check_boundary_conditions
 from ..mechanics.config import SolveConfig
@@ -161,7 +161,10 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
         # converged steps are checkpointed beside the results so that a killed solve resumes where it
         # was; under mpiexec rank 0 writes it (the whole model's d) and every rank reads it to resume
         keep = _Checkpointer(checkpoint_path(out_path), checkpoint_key(cfg, inputs), cfg.steps)
-        kw = dict(activation=ramp, resume=keep and _resume(keep.path, keep.key, cfg.steps), on_checkpoint=keep)
+        # each converged step's nodal fields wait in a file beside the results, not in memory
+        store = StepStore(out_path) if root else None
+        kw = dict(activation=ramp, resume=keep and _resume(keep.path, keep.key, cfg.steps), on_checkpoint=keep,
+                  store=store)
         try:
             if progress is None:
                 with _progress(cfg.steps + 1, "load step") as bar, newton_feed(bar):
@@ -179,6 +182,9 @@ def run_solve(model_path: str | Path, cfg: SolveConfig | Mapping | None, out_pat
             if root:  # the same command would fail the same way: nothing to resume
                 keep.remove()
             raise
+        finally:
+            if store is not None:  # read back into the results by now, or not wanted any more
+                store.remove()
     if not root:
         return Path(out_path)
     results.info["activation"] = _per_muscle(cfg, ramp, model)
