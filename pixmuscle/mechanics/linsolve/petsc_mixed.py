@@ -163,11 +163,7 @@ class DisplacementPreconditioner:
 
     def build(self, system, state) -> None:
         s = self.s
-        if self.amg is not None:
-            self.amg.destroy()
-            self.amg = None
-        if self.regions is not None:
-            self.regions.release()
+        self.release()
         release_free_heap()  # the old multigrid's and factors' pages, which the new ones would not all reuse
         held, lay = system.held, system.layout
         A = _owned_block_rows(held.preconditioner_matrix(state.held, s.reach, volumetric="held"), lay, s.PETSc)
