@@ -2,6 +2,9 @@
 failure handling, the solve stage and its results file, linear-solver backends."""
 
 import dataclasses
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +20,7 @@ from pixmuscle.mechanics import pardiso
 from pixmuscle.mechanics.config import SolveConfig
 from pixmuscle.mechanics.linsolve import DirectSolver, make_solver, multigrid, voxel_aggregates
 from pixmuscle.mechanics.solve import solve
+from pixmuscle.store import write_bytes_atomic
 from pixmuscle.verify.mechanics import isometric_check, mask_model, oblique_check, roller_bcs, uniaxial_check
 
 needs_hypre = pytest.mark.skipif(not multigrid.hypre_available(), reason="petsc4py with hypre is not installed")
@@ -180,6 +184,12 @@ def test_step_store_gives_back_the_steps_it_took(tmp_path):
         np.testing.assert_array_equal(store.read(key), np.stack([f[key] for f in steps]))
     store.remove()
     assert not store.path.exists()
+    # a store left by a process that has gone (a killed solve) goes with the next write of the results
+    code = f"from pixmuscle.io.results import StepStore; print(StepStore({str(tmp_path / 'results.h5')!r}).path)"
+    left = Path(subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout.strip())
+    assert left.exists()
+    write_bytes_atomic(tmp_path / "results.h5", b"results")
+    assert not left.exists()
 
 
 def test_run_solve_writes_results_schema(tmp_path):

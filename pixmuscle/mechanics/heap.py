@@ -35,7 +35,6 @@ import ctypes
 import ctypes.util
 import functools
 
-
 #: glibc's mallopt parameter number of the mmap threshold (malloc.h)
 M_MMAP_THRESHOLD = -3
 #: the size from which a block has a mapping of its own (:func:`map_large_allocations`), bytes
