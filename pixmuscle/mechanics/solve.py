@@ -70,14 +70,14 @@ def constraint_gap(steps: list[dict], h_min: float) -> dict[str, dict]:
     cm — and ``relative``, the same divided by the largest nodal displacement of the solve (0 when
     nothing moves); ``node_cm`` and ``relative_node``: the same at the constrained nodes themselves
     (for end sets constrained on their end faces, the node layer half a voxel inside the face moves
-    with the tissue between them); ``max_displacement_cm`` (from each step's ``u``, or its
-    ``u_max_cm`` where the step's nodal fields went to a store); ``significant``: the gap exceeds
-    :data:`GAP_WARN` of both the largest displacement and the smallest voxel edge ``h_min`` (cm) —
-    in a nearly isometric solve a gap of a few µm can be percents of the tiny largest displacement).
+    with the tissue between them); ``max_displacement_cm`` (the largest of the steps' ``u_max_cm``);
+    ``significant``: the gap exceeds :data:`GAP_WARN` of both the largest displacement and the
+    smallest voxel edge ``h_min`` (cm) — in a nearly isometric solve a gap of a few µm can be
+    percents of the tiny largest displacement).
     """
     if not steps:
         return {}
-    umax = max(s["u_max_cm"] if "u_max_cm" in s else float(np.linalg.norm(s["u"], axis=1).max()) for s in steps)
+    umax = max(s["u_max_cm"] for s in steps)
     out = {}
     for name in steps[0]["gaps"]:
         pt = max(s["gaps"][name]["point_cm"] for s in steps)
@@ -222,8 +222,8 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
         steps.append(dict(alpha=rec.alpha if activation is None else activation.mean(rec.alpha), t=rec.t,
                           iterations=rec.iterations, cutbacks=rec.cutbacks, rows=rec.rows, **out))
         steps[-1]["max_principal"] = None if out["cauchy"] is None else max_principal(out["cauchy"])
+        steps[-1]["u_max_cm"] = None if out["u"] is None else float(np.linalg.norm(out["u"], axis=1).max())
         if store is not None and out["cauchy"] is not None:  # not held until the end (under MPI: rank 0's)
-            steps[-1]["u_max_cm"] = float(np.linalg.norm(out["u"], axis=1).max())  # constraint_gap's scale
             store.append({name: steps[-1].pop(name) for name in STORED_FIELDS})
         last_rel = rec.rows[-1].relative_residual if rec.rows else 0.0
         # the checkpoint's records hold the whole model's d (rank 0 writes them)
