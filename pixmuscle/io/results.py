@@ -11,6 +11,8 @@ Layout: :mod:`pixmuscle.mechanics.results` and docs/architecture.md.
 from __future__ import annotations
 
 import json
+import logging
+import shutil
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -18,11 +20,15 @@ from typing import Any
 import h5py
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, OutputError
 from ..mechanics.results import NEWTON_COLUMNS, NodeEllipticity, Results
 from ..model.tissues import NODE_TISSUES
 from ..store import open_stage, temporary_path, write_dataset, write_stage
 from .model import read_model_groups, write_model_groups
+
+_LOG = logging.getLogger(__name__)
+#: free space a step store keeps beside twice a step's arrays before it writes them (HDF5's metadata), bytes
+STORE_SLACK_BYTES = 1 << 20
 
 SCHEMA = "pixmuscle.results"
 VERSION = 1
@@ -101,7 +107,11 @@ class StepStore:
     memory a sweep holds does not grow with its load steps by 10 float64 per node and step
     (0.24 GB over the 11 states of a 295k-node sweep). One HDF5 file, a hidden temporary beside the
     results file (:func:`pixmuscle.store.temporary_path`: one a killed run leaves is removed by the
-    next write of the results), one dataset per field with a row per step.
+    next write of the results), one dataset per field with a row per step. Where the disk has no room
+    for a step (twice its arrays and :data:`STORE_SLACK_BYTES`) or the file cannot be written, the
+    steps stored so far are read back, the file is removed and the store keeps every step in memory
+    from then on, with a warning: the solve goes on, and only the results file's own write can then
+    fail, with its own message.
 
     Parameters
     ----------
@@ -112,25 +122,57 @@ class StepStore:
     def __init__(self, results_path: str | Path):
         self.path = temporary_path(results_path, "steps")
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        with h5py.File(self.path, "w"):
-            pass
         self.rows = 0
+        self._memory: list[dict] | None = None  # the steps, once the file could not take them
+        try:
+            with h5py.File(self.path, "w"):
+                pass
+        except (OSError, RuntimeError) as exc:
+            self._to_memory(exc)
 
     def append(self, fields: Mapping[str, np.ndarray]) -> None:
         """Store one step's arrays (the same names and shapes at every step), float64."""
-        with h5py.File(self.path, "a") as f:
-            for name, value in fields.items():
-                value = np.asarray(value, float)
-                if name not in f:
-                    f.create_dataset(name, shape=(0, *value.shape), maxshape=(None, *value.shape),
-                                     chunks=(1, *value.shape), dtype=float)
-                ds = f[name]
-                ds.resize(self.rows + 1, axis=0)
-                ds[self.rows] = value
+        fields = {name: np.asarray(value, float) for name, value in fields.items()}
+        need = 2 * sum(v.nbytes for v in fields.values()) + STORE_SLACK_BYTES
+        if self._memory is None and shutil.disk_usage(self.path.parent).free < need:
+            # not left to HDF5 to find out: its error paths on a full disk are not safe to go on from
+            self._to_memory(f"not enough free disk space for a step: {need / 1e6:.1f} MB needed")
+        if self._memory is None:
+            try:
+                with h5py.File(self.path, "a") as f:
+                    for name, value in fields.items():
+                        if name not in f:
+                            f.create_dataset(name, shape=(0, *value.shape), maxshape=(None, *value.shape),
+                                             chunks=(1, *value.shape), dtype=float)
+                        ds = f[name]
+                        ds.resize(self.rows + 1, axis=0)
+                        ds[self.rows] = value
+            except (OSError, RuntimeError) as exc:
+                self._to_memory(exc)
+        if self._memory is not None:
+            self._memory.append(fields)
         self.rows += 1
+
+    def _to_memory(self, exc: Exception | str) -> None:
+        """Take the rows stored so far into memory and remove the file (it could not be written)."""
+        kept = []
+        if self.rows:
+            try:
+                with h5py.File(self.path, "r") as f:
+                    kept = [{name: np.asarray(f[name][i]) for name in f} for i in range(self.rows)]
+            except (OSError, RuntimeError) as err:
+                raise OutputError(f"{self.path}: the solve's step store could not be written ({exc}) nor read "
+                                  f"back ({err}); the converged steps are in the checkpoint: free some space and "
+                                  "run the same command again") from err
+        self.remove()
+        self._memory = kept
+        _LOG.warning("the solve's step store %s could not be written (%s); the steps' nodal fields are kept in "
+                     "memory instead", self.path, exc)
 
     def read(self, name: str) -> np.ndarray:
         """Every stored step's ``name``, stacked: (S, ...)."""
+        if self._memory is not None:
+            return np.stack([step[name] for step in self._memory])
         with h5py.File(self.path, "r") as f:
             return np.asarray(f[name][()])
 
