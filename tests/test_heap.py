@@ -53,9 +53,9 @@ print(before - rss())
 @pytest.mark.skipif(not sys.platform.startswith("linux") or heap._libc_function("mallopt", (heap.ctypes.c_int,) * 2) is None,
                     reason="glibc's mallopt")
 def test_large_blocks_leave_the_resident_set_when_they_are_freed():
-    """In a fresh interpreter: 80 MB of 2-MiB arrays freed below a live one stay resident
-    under glibc's dynamic mmap threshold and leave at once with the threshold fixed at 1 MiB."""
-    freed = {mode: float(subprocess.run([sys.executable, "-c", _SCENARIO, mode], check=True, capture_output=True,
-                                        text=True).stdout) for mode in ("dynamic", "fixed")}
-    assert freed["fixed"] > 0.9 * 80, freed
-    assert freed["dynamic"] < 0.5 * 80, freed
+    """In a fresh interpreter: 80 MB of 2-MiB arrays freed below a live one leave the resident set at
+    once with the threshold fixed at 1 MiB. (Under glibc's dynamic threshold they may stay: they did
+    on this machine's interactive runs, not in every CI run, so only the fixed case is asserted.)"""
+    freed = float(subprocess.run([sys.executable, "-c", _SCENARIO, "fixed"], check=True, capture_output=True,
+                                 text=True).stdout)
+    assert freed > 0.9 * 80, freed
