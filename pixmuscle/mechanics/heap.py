@@ -17,8 +17,13 @@ Within a phase the same holds for arrays below glibc's mmap threshold, which gli
 the per-node arrays of a large model (N × 9 float64 is 21 MB at 295k nodes) come from the heap,
 and the holes they leave when freed stay resident until the next trim. :func:`map_large_allocations`
 fixes the threshold instead (glibc's ``mallopt(M_MMAP_THRESHOLD)``, which also turns the dynamic
-raise off), so that every block of at least 1 MiB has its own mapping and goes back to the system
-when it is freed: the resident memory within a Newton iteration is then what is live.
+raise off), so that a block of at least 1 MiB that needs new memory gets a mapping of its own and
+goes back to the system when it is freed. The threshold does not apply to a request that a free
+chunk of the heap can serve: glibc takes that chunk, whatever the size, faults its trimmed pages
+in again, and keeps them resident once the block is freed. So the heap's free space left by the
+build takes the per-node arrays of every Newton iteration; on the 295k leg that held 0.7 GB
+resident from the first line search on (sampled RSS of the solving process; tracemalloc showed
+the live numpy memory unchanged). The solve therefore trims once per Newton iteration too.
 
 :func:`release_free_heap` calls glibc's ``malloc_trim(0)``, which releases every whole free page
 of every arena (``madvise(MADV_DONTNEED)``): a few milliseconds. Where the C library is not glibc

@@ -196,6 +196,10 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
         def prepare(self, system, state):
             t0 = time.perf_counter()
             linsolver.prepare(system, state)
+            # every Newton iteration: the last iteration's trial states and temporaries, which glibc serves
+            # from the heap's trimmed free space whatever their size and keeps resident once freed (0.7 GB
+            # at 295k nodes from the first line search on, docs/performance.md)
+            release_free_heap()
             lin_time["setup_s"] += time.perf_counter() - t0
 
         @staticmethod
