@@ -54,6 +54,28 @@ def test_projected_residual_and_tangent_are_derivatives(patch):
     assert np.linalg.norm(system.stiffness(state) @ v.ravel() - Kv) < 1e-12 * np.linalg.norm(Kv)
 
 
+def test_material_and_volumetric_tangent_by_blocks_give_the_whole_model_numbers():
+    """The material laws and the patch terms of the tangent, made by blocks of a few nodes (the
+    solve's blocks bound their temporaries), give the numbers of one block bit for bit; the tangent
+    written over A equals a new one, and a new one leaves A as it was."""
+    from pixmuscle.mechanics.system import material_response
+
+    model = _body()
+    system = _system(model, {"method": "projected", "patch": [2, 2, 1]})
+    d = 0.02 * np.random.default_rng(5).standard_normal((model.n_nodes, 3))
+    F = system.scni.deformation_gradient(d)
+    whole = model.n_nodes + 1
+    P0, A0 = material_response(system.groups, system.fiber, F, 0.7, block=whole)
+    P1, A1 = material_response(system.groups, system.fiber, F, 0.7, block=7)
+    assert np.array_equal(P0, P1) and np.array_equal(A0, A1)
+    vs = system.volumetric.state(F)
+    kept = A0.copy()
+    T0 = system.volumetric.tangent(A0, vs, block=whole)
+    assert np.array_equal(A0, kept) and not np.shares_memory(T0, A0)
+    T1 = system.volumetric.tangent(A1, vs, overwrite=True, block=5)
+    assert T1 is A1 and np.array_equal(T0, T1)
+
+
 def test_linearised_pressure_is_the_first_order_pressure_of_the_update():
     """``linearised_pressure(state, v)`` = K̄ (θ − 1) + K̄ (∂θ/∂d) v: its slope in v against central
     differences of the patch pressure K̄ (θ(d + εv) − 1), and exact at v = 0; a state evaluated with

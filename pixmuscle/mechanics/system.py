@@ -108,8 +108,12 @@ def group_kw(mat, fiber: np.ndarray, idx: np.ndarray, alpha: float, activation=N
     return material_kw(mat, fiber[idx], act)
 
 
+#: nodes per block of the material evaluation (:func:`material_response`): 21 MB per (block, 81) array
+MATERIAL_BLOCK = 1 << 15
+
+
 def material_response(groups: list, fiber: np.ndarray, F: np.ndarray, alpha: float, activation=None,
-                      tangent: bool = True):
+                      tangent: bool = True, block: int = MATERIAL_BLOCK):
     """P (N, 3, 3), N/cm², and if ``tangent`` A (N, 3, 3, 3, 3), N/cm², at every node, grouped by material.
 
     Parameters
@@ -123,16 +127,22 @@ def material_response(groups: list, fiber: np.ndarray, F: np.ndarray, alpha: flo
     alpha : float
         Activation, or the ramp parameter of ``activation``.
     activation : ActivationRamp, optional
+    block : int
+        Nodes per call of a law (:data:`MATERIAL_BLOCK`).
     """
     n = F.shape[0]
     P = np.empty((n, 3, 3))
     A = np.empty((n, 3, 3, 3, 3)) if tangent else None
     for _, mat, idx in groups:  # ≤ 3 tissues
-        kw = group_kw(mat, fiber, idx, alpha, activation)
-        if tangent:
-            P[idx], A[idx] = mat.stress_tangent(F[idx], **kw)
-        else:
-            P[idx] = mat.stress(F[idx], **kw)
+        # by blocks of nodes: a law's temporaries (several (n, 81) arrays in a tangent) stay the
+        # size of a block, not of the model (the laws are pointwise: the same numbers either way)
+        for lo in range(0, idx.size, block):
+            sub = idx[lo:lo + block]
+            kw = group_kw(mat, fiber, sub, alpha, activation)
+            if tangent:
+                P[sub], A[sub] = mat.stress_tangent(F[sub], **kw)
+            else:
+                P[sub] = mat.stress(F[sub], **kw)
     return P, A
 
 
@@ -431,7 +441,8 @@ class MechanicalSystem:
         vs = None
         if self.volumetric is not None:
             vs = self.volumetric.state(F)
-            A = self.volumetric.tangent(A, vs if pressure is None else self.volumetric.carried(vs, pressure))
+            A = self.volumetric.tangent(A, vs if pressure is None else self.volumetric.carried(vs, pressure),
+                                        overwrite=True)
             P = self.volumetric.stress(P, vs)
         fi = self.scni.internal_force(P)
         fs = self.stabilization_force(d)

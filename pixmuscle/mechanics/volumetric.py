@@ -189,15 +189,22 @@ class PatchProjection:
         """P̃_L = P_L + (p_p − K_L (J_L − 1)) a_L, N/cm², shape (N, 3, 3)."""
         return P + vs.shift[:, None, None] * vs.a
 
-    def tangent(self, A: np.ndarray, vs: VolumetricState) -> np.ndarray:
-        """Per-node part Ã_L = A_L − K_L a⊗a + shift_L ∂a/∂F, N/cm², shape (N, 3, 3, 3, 3)."""
+    def tangent(self, A: np.ndarray, vs: VolumetricState, overwrite: bool = False,
+                block: int = 1 << 15) -> np.ndarray:
+        """Per-node part Ã_L = A_L − K_L a⊗a + shift_L ∂a/∂F, N/cm², shape (N, 3, 3, 3, 3).
+
+        ``overwrite``: write Ã into ``A`` (else into a new array). The terms are made by blocks of
+        ``block`` nodes, so their temporaries are (block, 81), not (N, 81): the same numbers."""
         a, J = vs.a, vs.J
-        H = a / J[:, None, None]
-        out = A - self.bulk[:, None, None, None, None] * np.einsum("nij,nkl->nijkl", a, a)
-        # shift · ∂a/∂F = shift · J (H⊗H − H⊙H)
-        c = (vs.shift * J)[:, None, None, None, None]
-        out += c * np.einsum("nij,nkl->nijkl", H, H)
-        out -= c * np.einsum("nil,nkj->nijkl", H, H)
+        out = A if overwrite else A.copy()
+        for lo in range(0, out.shape[0], block):
+            s = slice(lo, lo + block)
+            H = a[s] / J[s, None, None]
+            out[s] -= self.bulk[s, None, None, None, None] * np.einsum("nij,nkl->nijkl", a[s], a[s])
+            # shift · ∂a/∂F = shift · J (H⊗H − H⊙H)
+            c = (vs.shift[s] * J[s])[:, None, None, None, None]
+            out[s] += c * np.einsum("nij,nkl->nijkl", H, H)
+            out[s] -= c * np.einsum("nil,nkj->nijkl", H, H)
         return out
 
     def energy_correction(self, J: np.ndarray, dtheta: np.ndarray) -> float:
