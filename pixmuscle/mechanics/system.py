@@ -48,7 +48,7 @@ from .rows import RowAssembler
 from .scni import SCNI, build_scni, cell_corners, cell_faces, face_incidence, support_radius
 from .stabilization import gradient_difference, gradient_differences, stabilization_moduli, stabilization_stiffness
 from .tangent import ConstantStiffness, MatrixFreeTangent, ProductForm, spd_surrogate
-from .volumetric import PatchProjection, VolumetricState, shear_moduli
+from .volumetric import NODE_BLOCK, PatchProjection, VolumetricState, shear_moduli
 
 if TYPE_CHECKING:
     from .linsolve.subdomains import RegionSolves
@@ -108,12 +108,8 @@ def group_kw(mat, fiber: np.ndarray, idx: np.ndarray, alpha: float, activation=N
     return material_kw(mat, fiber[idx], act)
 
 
-#: nodes per block of the material evaluation (:func:`material_response`): 21 MB per (block, 81) array
-MATERIAL_BLOCK = 1 << 15
-
-
 def material_response(groups: list, fiber: np.ndarray, F: np.ndarray, alpha: float, activation=None,
-                      tangent: bool = True, block: int = MATERIAL_BLOCK):
+                      tangent: bool = True, block: int = NODE_BLOCK):
     """P (N, 3, 3), N/cm², and if ``tangent`` A (N, 3, 3, 3, 3), N/cm², at every node, grouped by material.
 
     Parameters
@@ -128,7 +124,7 @@ def material_response(groups: list, fiber: np.ndarray, F: np.ndarray, alpha: flo
         Activation, or the ramp parameter of ``activation``.
     activation : ActivationRamp, optional
     block : int
-        Nodes per call of a law (:data:`MATERIAL_BLOCK`).
+        Nodes per call of a law (:data:`.volumetric.NODE_BLOCK`).
     """
     n = F.shape[0]
     P = np.empty((n, 3, 3))

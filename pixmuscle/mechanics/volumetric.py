@@ -53,6 +53,10 @@ import dataclasses
 import numpy as np
 import scipy.sparse as sp
 
+#: nodes per block of the per-node moduli work (the material evaluation and :meth:`PatchProjection.tangent`):
+#: 21 MB per (block, 81) float64 array
+NODE_BLOCK = 1 << 15
+
 
 def shear_moduli(A0: np.ndarray) -> np.ndarray:
     """Small-strain shear modulus μ of each node from its reference tangent A(F = I), (N,) N/cm².
@@ -190,7 +194,7 @@ class PatchProjection:
         return P + vs.shift[:, None, None] * vs.a
 
     def tangent(self, A: np.ndarray, vs: VolumetricState, overwrite: bool = False,
-                block: int = 1 << 15) -> np.ndarray:
+                block: int = NODE_BLOCK) -> np.ndarray:
         """Per-node part Ã_L = A_L − K_L a⊗a + shift_L ∂a/∂F, N/cm², shape (N, 3, 3, 3, 3).
 
         ``overwrite``: write Ã into ``A`` (else into a new array). The terms are made by blocks of
