@@ -166,7 +166,7 @@ class DisplacementPreconditioner:
         self.release()
         release_free_heap()  # the old multigrid's and factors' pages, which the new ones would not all reuse
         held, lay = system.held, system.layout
-        A = _owned_block_rows(held.preconditioner_matrix(state.held, s.reach, volumetric="held"), lay, s.PETSc)
+        A = _owned_block_rows(lambda: held.preconditioner_matrix(state.held, s.reach, volumetric="held"), lay, s.PETSc)
         self.amg = _multigrid(A, s, system, s.PETSc)
         if s.region_solves:
             if self.regions is None:
@@ -209,22 +209,23 @@ class DisplacementPreconditioner:
         multigrid and region factors outlive it until the next build."""
 
 
-def _owned_block_rows(K, layout, PETSc):
-    """The block rows of this rank's own nodes of the held system's BSR ``K`` (3 × 3 blocks), columns
-    in the global PETSc node order, as a distributed BAIJ matrix."""
+def _owned_block_rows(make_K, layout, PETSc):
+    """The block rows of this rank's own nodes of the held system's BSR ``make_K()`` (3 × 3 blocks),
+    columns in the global PETSc node order, as a distributed BAIJ matrix. ``K`` is made here, so
+    that it is freed before PETSc copies the rows (the caller would hold an argument to the end)."""
+    K = make_K()
     own = layout.own
     counts = np.diff(K.indptr)[own]
-    start = np.repeat(K.indptr[own], counts)
-    idx = start + (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts))
+    idx = np.repeat(K.indptr[own], counts) + (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts))
     cols = layout.petsc[K.indices[idx]]
-    row = np.repeat(np.arange(own.size), counts)
-    by = np.lexsort((cols, row))
+    by = np.lexsort((cols, np.repeat(np.arange(own.size), counts)))
     indptr = np.concatenate([[0], np.cumsum(counts)])
     data = K.data[idx[by]]
-    del K
+    cols = cols[by]
+    del K, idx, by
     from .amg_processes import hypre_matrix
 
-    return hypre_matrix(layout.comm, indptr, cols[by], data, own.size, layout.n_global)
+    return hypre_matrix(layout.comm, indptr, cols, data, own.size, layout.n_global)
 
 
 def _multigrid(A, s, system, PETSc):
