@@ -166,9 +166,7 @@ class DisplacementPreconditioner:
         self.release()
         release_free_heap()  # the old multigrid's and factors' pages, which the new ones would not all reuse
         held, lay = system.held, system.layout
-        A = _owned_block_rows(lambda: held.preconditioner_matrix(state.held, s.reach, volumetric="held"), lay, s.PETSc)
-        self.amg = _multigrid(A, s, system, s.PETSc)
-        if s.region_solves:
+        if s.region_solves:  # before the multigrid, so that their assembly and work space do not meet its hierarchy
             if self.regions is None:
                 from ..distributed.partition import halo  # not at the top: the distributed package imports the backends
 
@@ -180,7 +178,10 @@ class DisplacementPreconditioner:
                 self.regions = held.region_solves(parts, lay.ijk, coupling=s.region_coupling)
                 s.info["region_nodes"] = int(lay.sum(sum(int(np.count_nonzero(owned[p])) for p in parts)))
             self.regions.update(state.held)
-        release_free_heap()  # the stand-in's and the region blocks' temporaries
+            release_free_heap()  # the region blocks' temporaries
+        A = _owned_block_rows(lambda: held.preconditioner_matrix(state.held, s.reach, volumetric="held"), lay, s.PETSc)
+        self.amg = _multigrid(A, s, system, s.PETSc)
+        release_free_heap()  # the stand-in's temporaries
 
     def setUp(self, pc) -> None:  # built by build(), not by PETSc
         pass
