@@ -234,6 +234,29 @@ def test_a_released_solver_builds_afresh_and_gives_the_same_update():
     assert np.linalg.norm(after - ref) <= 1e-7 * np.linalg.norm(ref)
 
 
+def test_a_finished_solve_lets_the_moduli_go_and_the_next_system_keeps_the_preconditioner():
+    """finish() (the driver's call after each solve) drops the operator that reads the state's moduli,
+    and release_moduli the moduli themselves; the hierarchy stays, and the next prepared system's
+    update equals the direct solution of its assembled condensed tangent."""
+    model, system = _system()
+    s0 = system.evaluate(np.zeros((model.n_nodes, 3)), 0.5, 0.6)
+    solver = make_solver("mixed_amg", model.X, ijk=model.ijk, rtol=1e-10)
+    solver.prepare(system, s0)
+    solver.solve(s0.r.ravel(), rtol=1e-9)
+    hierarchy = solver._M
+    solver.finish()
+    system.release_moduli(s0)
+    assert solver._A is None and solver._mixed is None and s0.A is None
+    assert solver._M is hierarchy and solver.info["preconditioner_builds"] == 1
+    s1 = system.evaluate(np.full((model.n_nodes, 3), 1e-3), 0.5, 0.6)
+    solver.prepare(system, s1)
+    r = s1.r.ravel()
+    x = solver.solve(r, rtol=1e-9)
+    assert solver.info["preconditioner_builds"] == 1
+    ref = spla.spsolve(system.stiffness(s1).tocsc(), r)
+    assert np.linalg.norm(x - ref) <= 1e-7 * np.linalg.norm(ref)
+
+
 def test_displacement_moduli_of_some_nodes_are_those_of_the_whole_model():
     """The moduli of K_d at a set of nodes, made without a whole-model array, equal V_L (A_L + K_L a_L⊗a_L
     at the held single-node patches' nodes) written out with the whole model's arrays, and leave the

@@ -193,21 +193,28 @@ def solve(model: Model, cfg: SolveConfig | None = None, progress=None, activatio
     class _Timed:
         name = linsolver.name
 
+        prepared = None  # the state whose tangent the linear solver is prepared for
+
         def prepare(self, system, state):
             t0 = time.perf_counter()
             linsolver.prepare(system, state)
+            self.prepared = state
             # every Newton iteration: the last iteration's trial states and temporaries, which glibc serves
             # from the heap's trimmed free space whatever their size and keeps resident once freed (0.7 GB
             # at 295k nodes from the first line search on, docs/performance.md)
             release_free_heap()
             lin_time["setup_s"] += time.perf_counter() - t0
 
-        @staticmethod
-        def _timed(method, *args, **kw):
+        def _timed(self, method, *args, **kw):
             t0 = time.perf_counter()
             out = method(*args, **kw)
             lin_time["solve_s"] += time.perf_counter() - t0
             lin_time["iterations"].append(linsolver.info["iterations"])
+            # one solve per prepared tangent (newton.py): its operator and the prepared state's moduli
+            # are let go before the line search evaluates its trial state
+            linsolver.finish()
+            system.release_moduli(self.prepared)
+            self.prepared = None
             return out
 
         def solve(self, r, rtol=None):

@@ -326,6 +326,9 @@ class DistributedSystem:
 
     # -- results --------------------------------------------------------------------------------
 
+    def release_moduli(self, state: DistributedState) -> None:
+        """Nothing: the PETSc backends' operators keep the held state's moduli between solves."""
+
     def gather(self, x: np.ndarray) -> np.ndarray | None:
         """Owned rows of every rank as one model-order array on rank 0 (None elsewhere)."""
         return self.layout.gather(x)

@@ -96,6 +96,12 @@ class LinearSolver:
         name under ``linear_solver`` and whatever counts the backend keeps."""
         return {"linear_solver": self.name}
 
+    def finish(self) -> None:
+        """The prepared system's solve is done: let go of its operator, which reads the state's
+        moduli, until the next :meth:`prepare` (the factors or preconditioner stay). The load-step
+        driver calls it after each solve, so that the line search's trial state is not evaluated
+        beside the moduli of the iterate. Default: nothing to let go."""
+
     def release(self) -> None:
         """Let go of the factors, preconditioner and operators of the last prepared system (the
         counters, statistics and :meth:`memory` stay; a later :meth:`prepare` builds afresh). The

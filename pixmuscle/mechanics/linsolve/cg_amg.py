@@ -222,6 +222,10 @@ class KrylovAMGSolver(LinearSolver):
             self.policy.account(its, rtol)
         return x
 
+    def finish(self) -> None:
+        """Drop the tangent operator (the hierarchy stays)."""
+        self._A = None
+
     def release(self) -> None:
         """Drop the hierarchy (on the BoomerAMG workers too) and the tangent operator."""
         self._M = None

@@ -253,6 +253,11 @@ class MixedBlockSolver(KrylovAMGSolver):
         self.info["setup_s"] += time.perf_counter() - t0
         self.info["build_s"][-1] += time.perf_counter() - t0
 
+    def finish(self) -> None:
+        """Drop the tangent and the mixed operator (the hierarchy, region factors and Schur diagonal stay)."""
+        self._mixed = None
+        super().finish()
+
     def release(self) -> None:
         """Drop the mixed operator and its preconditioner, the region factors and the hierarchy."""
         self._mixed = self._blocks = None

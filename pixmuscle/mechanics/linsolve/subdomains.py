@@ -163,8 +163,7 @@ class RegionSolves:
 
     def release(self) -> None:
         """Drop the moduli kept for the rows and the numerical factors until the next :meth:`update`
-        (before a rebuild of the V-cycle, whose set-up then does not hold them: 60 M factor
-        entries on the 74k leg with the regions cut at 10⁻³)."""
+        (a rebuild of the preconditioner lets the old factors go before it makes the new ones)."""
         for part in self.parts:
             part.C = None
             part.factor.release()
