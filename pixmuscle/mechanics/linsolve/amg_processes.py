@@ -234,8 +234,8 @@ def hypre_pc(A, prefix: str, options: dict):
     The C heap's free pages are released before the set-up and after it (:mod:`..heap`): before,
     those of what the caller has just freed (the stand-in and its assembly's temporaries, or the
     rows a worker received), which hypre's allocations reuse only in part; after, those of the
-    set-up's own temporaries. Without the first release, the solving process of the 295k sweep
-    held 1.9 GB of free heap through each set-up (it fell by that much at the next release).
+    set-up's own temporaries. At a rebuild on the first Newton system of the 295k leg the first
+    release took the solving process from 5.77 to 4.56 GB (resident).
     """
     PETSc = import_petsc()
 
