@@ -735,7 +735,7 @@ class MechanicalSystem:
 
     def release_moduli(self, state: State) -> None:
         """Let go of ``state``'s moduli A (N, 3, 3, 3, 3) once the solve with its tangent is done: the
-        line search evaluates its trial state without them beside it (0.19 GB at 295k nodes). The
+        line search evaluates its trial state without them beside it (0.18 GB at 295k nodes). The
         state keeps d, F, P, the residual and the volumetric state."""
         state.A = None
 

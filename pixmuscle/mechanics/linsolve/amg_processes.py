@@ -234,8 +234,7 @@ def hypre_pc(A, prefix: str, options: dict):
     The C heap's free pages are released before the set-up and after it (:mod:`..heap`): before,
     those of what the caller has just freed (the stand-in and its assembly's temporaries, or the
     rows a worker received), which hypre's allocations reuse only in part; after, those of the
-    set-up's own temporaries. At a rebuild on the first Newton system of the 295k leg the first
-    release took the solving process from 5.77 to 4.56 GB (resident).
+    set-up's own temporaries (docs/performance.md, "How the solve keeps its memory down").
     """
     PETSc = import_petsc()
 

@@ -217,8 +217,8 @@ class MixedBlockSolver(KrylovAMGSolver):
 
         The old hierarchy and factors are let go before anything new is made. The regions are
         factorised before the hierarchy is set up, not beside it: their assembly and PARDISO's
-        work space (0.8 GB at 295k nodes, besides the 1.15 GB of factors) then never meet
-        BoomerAMG's hierarchy on both processes, which was each rebuild's peak."""
+        work space (beside 1.15 GB of factors at 295k nodes, ``bench_memory.json``) then never
+        meet BoomerAMG's hierarchy on both processes, which was each rebuild's peak."""
         if self._mixed is not None:  # the last system's preconditioner holds the old hierarchy: let it go first
             self._mixed[1].MA = None
         self._M = None
