@@ -295,3 +295,36 @@ def test_mixed_newton_system_frees_the_petsc_objects_of_the_last_one():
     solver.prepare(system, state)
     assert not any(obj.handle for obj in objects)
     assert solver._mixed["ksp"].handle
+
+
+def test_mixed_finished_solve_destroys_its_operators_and_the_next_system_keeps_the_preconditioner():
+    """finish() (the driver's call after each solve) destroys the solved system's PETSc objects, whose
+    K_d block reads the state's moduli, so that release_moduli lets them go; the displacement
+    preconditioner stays, and the next system's update equals SciPy's direct solve of its tangent."""
+    if not petsc.available():
+        pytest.skip(f"petsc4py not importable ({petsc.INSTALL_HINT})")
+    import scipy.sparse.linalg as spla
+    from test_mixed_solver import _system
+
+    from pixmuscle.mechanics.linsolve import make_solver
+
+    model, system = _system(held="patch")
+    s0 = system.evaluate(np.zeros((model.n_nodes, 3)), 0.5, 0.6)
+    solver = make_solver("petsc_mixed", model.X, ijk=model.ijk, rtol=1e-10)
+    solver.prepare(system, s0)
+    solver.solve(s0.r.ravel(), rtol=1e-9)
+    mx = solver._mixed
+    objects = [mx["ksp"], mx["A"], *mx["blocks"], mx["b"], mx["z"], mx["t"]]
+    del mx
+    solver.finish()
+    system.release_moduli(s0)
+    assert solver._mixed is None and s0.A is None
+    assert not any(obj.handle for obj in objects)
+    assert solver.info["preconditioner_builds"] == 1
+    s1 = system.evaluate(np.full((model.n_nodes, 3), 1e-3), 0.5, 0.6)
+    solver.prepare(system, s1)
+    r = s1.r.ravel()
+    x = solver.solve(r, rtol=1e-9)
+    assert solver.info["preconditioner_builds"] == 1
+    ref = spla.spsolve(system.stiffness(s1).tocsc(), r)
+    assert np.linalg.norm(x - ref) <= 1e-7 * np.linalg.norm(ref)

@@ -327,7 +327,10 @@ class DistributedSystem:
     # -- results --------------------------------------------------------------------------------
 
     def release_moduli(self, state: DistributedState) -> None:
-        """Nothing: the PETSc backends' operators keep the held state's moduli between solves."""
+        """Let go of the held state's moduli once its solve is done (as the serial system's
+        :meth:`~..system.MechanicalSystem.release_moduli`); ``petsc_mixed`` has destroyed the
+        operators that read them (its ``finish``), the condensed ``petsc`` keeps its own reference."""
+        self.held.release_moduli(state.held)
 
     def gather(self, x: np.ndarray) -> np.ndarray | None:
         """Owned rows of every rank as one model-order array on rank 0 (None elsewhere)."""

@@ -452,6 +452,11 @@ class PETScMixedSolver(PETScSolver):
         for obj in (mx["ksp"], mx["A"], *mx["blocks"], mx["b"], mx["z"], mx["t"]):
             obj.destroy()
 
+    def finish(self) -> None:
+        """Destroy the solved system's PETSc objects (its K_d block reads the state's moduli); the
+        displacement preconditioner and the probed Schur diagonal stay for the next system."""
+        self._release()
+
     def release(self) -> None:
         """Destroy the last Newton system's PETSc objects and the displacement preconditioner."""
         self._release()
