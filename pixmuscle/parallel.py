@@ -65,6 +65,29 @@ def import_petsc():
     return PETSc
 
 
+def set_options(prefix: str, defaults: dict, options: dict | None) -> dict:
+    """Write ``options`` over ``defaults`` (names without the dash) into PETSc's options database
+    under ``prefix``, replacing whatever was set under it before (another solver of this process);
+    returns the merged mapping. ``true`` (or an empty value) sets a bare flag; whole floats are
+    written as integers."""
+    PETSc = import_petsc()
+
+    merged = {**defaults, **(options or {})}
+    db = PETSc.Options()
+    for key in db.getAll():  # forget what an earlier solver of this process set under the prefix
+        if key.startswith(prefix):
+            db.delValue(key)
+    for key, value in merged.items():
+        key = str(key).lstrip("-")
+        # true is a bare flag: PETSc reads "-ksp_monitor true" as a viewer named "true" and fails
+        # and the config reads numbers as floats: "0.0" is no value for an integer option
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        text = "" if value is None or value is True else "false" if value is False else str(value)
+        db.setValue(prefix + key, text)
+    return merged
+
+
 def _comm():
     if launched_size() <= 1:
         return None

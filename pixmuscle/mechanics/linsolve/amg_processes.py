@@ -8,6 +8,8 @@ processes, rank 0 (this process) holding the first block of rows. Everything els
 stays in this process. A V-cycle sends each worker its slice of the vector and takes its slice of
 the result back; between cycles a worker sleeps in a poll of at most 1 ms, so that it leaves its
 core to the run's numba threads.
+The workers' side, and the pieces both sides share, are :mod:`..amg_worker`, which imports no more
+than a worker needs.
 
 Rows are cut into contiguous blocks of whole nodes with about equal non-zeros: the nodes are
 numbered slice by slice, so the blocks are slabs. A hierarchy on P processes is not the one on
@@ -31,7 +33,6 @@ import atexit
 import contextlib
 import itertools
 import os
-import resource
 import sys
 import threading
 import time
@@ -41,10 +42,8 @@ import scipy.sparse as sp
 
 from ...errors import SolverError
 from ...parallel import import_petsc
-from ..heap import map_large_allocations, release_free_heap
+from ..amg_worker import _CMD, _DATA, destroy, hypre_matrix, hypre_pc, send_array
 
-_CMD, _DATA = 11, 12
-_CHUNK = 1 << 26  # elements per message: MPI counts are int
 _groups: dict[int, WorkerGroup] = {}
 _refused: dict[int, str] = {}  # sizes MPI would not spawn, and why
 _keys = itertools.count()
@@ -72,7 +71,7 @@ class WorkerGroup:
         from mpi4py import MPI
 
         try:
-            self._inter = MPI.COMM_SELF.Spawn(sys.executable, args=["-c", f"from {__name__} import _serve; _serve()"],
+            self._inter = MPI.COMM_SELF.Spawn(sys.executable, args=["-c", "from pixmuscle.mechanics.amg_worker import serve; serve()"],
                                               maxprocs=size - 1)
         except MPI.Exception as err:
             _refused[size] = str(err)
@@ -108,7 +107,7 @@ class WorkerGroup:
             key, objs = self._unfreed.pop(0)
             for r in range(1, self.size):
                 self.comm.send(("free", key), dest=r, tag=_CMD)
-            _destroy(objs)
+            destroy(objs)
 
     @contextlib.contextmanager
     def together(self):
@@ -190,70 +189,11 @@ def _alive(pid: int) -> bool:
         return True
 
 
-def _destroy(objs) -> None:
-    """Destroy a hierarchy's PETSc objects (PC, matrix, vectors) in one order on every process."""
-    for o in objs:
-        o.destroy()
-
-
-def send_array(comm, a: np.ndarray, rank: int) -> None:
-    a = np.ascontiguousarray(a).reshape(-1)
-    comm.send((a.dtype.str, a.size), dest=rank, tag=_DATA)
-    for lo in range(0, a.size, _CHUNK):
-        comm.Send(a[lo:lo + _CHUNK], dest=rank, tag=_DATA)
-
-
-def recv_array(comm, rank: int = 0) -> np.ndarray:
-    dtype, size = comm.recv(source=rank, tag=_DATA)
-    a = np.empty(size, dtype=np.dtype(dtype))
-    for lo in range(0, size, _CHUNK):
-        comm.Recv(a[lo:lo + _CHUNK], source=rank, tag=_DATA)
-    return a
-
-
 def row_blocks(indptr: np.ndarray, parts: int) -> np.ndarray:
     """Boundaries (parts + 1,) of contiguous block-row ranges with about equal non-zeros."""
     n = indptr.size - 1
     cuts = np.searchsorted(indptr, np.arange(1, parts) * (indptr[-1] / parts))
     return np.concatenate([[0], np.clip(cuts, 0, n), [n]]).astype(np.int64)
-
-
-def hypre_matrix(comm, indptr, indices, data, n_local: int, n_total: int):
-    """This rank's block rows (BSR arrays of 3 × 3 blocks, global block columns) as a PETSc matrix on ``comm``."""
-    PETSc = import_petsc()
-
-    idx = PETSc.IntType
-    return PETSc.Mat().createBAIJ(size=((3 * n_local, 3 * n_total), (3 * n_local, 3 * n_total)), bsize=3,
-                                  comm=comm, csr=(np.asarray(indptr, idx), np.asarray(indices, idx),
-                                                  np.asarray(data).reshape(-1)))
-
-
-def hypre_pc(A, prefix: str, options: dict):
-    """BoomerAMG on the processes of ``A`` (converted in place to hypre's matrix type): PC and work vectors.
-
-    The C heap's free pages are released before the set-up and after it (:mod:`..heap`): before,
-    those of what the caller has just freed (the stand-in and its assembly's temporaries, or the
-    rows a worker received), which hypre's allocations reuse only in part; after, those of the
-    set-up's own temporaries (docs/performance.md, "How the solve keeps its memory down").
-    """
-    PETSc = import_petsc()
-
-    from .petsc import set_options
-
-    release_free_heap()
-    A.convert("hypre")
-    A.setBlockSize(3)
-    pc = PETSc.PC().create(comm=A.getComm())
-    pc.setOptionsPrefix(prefix)
-    pc.setOperators(A)
-    pc.setType("hypre")
-    pc.setHYPREType("boomeramg")
-    set_options(prefix, options, None)
-    pc.setFromOptions()
-    pc.setUp()
-    release_free_heap()
-    x, y = A.createVecs()
-    return A, pc, x, y
 
 
 class SpreadBoomerAMG:
@@ -328,61 +268,4 @@ class SpreadBoomerAMG:
         if workers is not None and workers.open:
             workers.release(self._key, objs)
         else:  # the workers are gone (or were never reached): this process's objects only
-            _destroy(objs)
-
-
-def _serve() -> None:
-    """A worker's loop: set up, apply and free hierarchies on rank 0's commands until ``stop``; any
-    error prints its traceback and aborts the MPI job (rank 0 would otherwise wait for ever)."""
-    import traceback
-
-    from mpi4py import MPI
-
-    map_large_allocations()  # as the solving process: freed hierarchies go back to the system
-    parent = MPI.Comm.Get_parent()
-    comm = parent.Merge(high=True)
-    comm.send(os.getpid(), dest=0, tag=_DATA)
-    try:
-        _commands(comm)
-    except BaseException:
-        traceback.print_exc()
-        sys.stderr.flush()
-        comm.Abort(1)
-    comm.Free()
-    parent.Disconnect()
-
-
-def _commands(comm) -> None:
-    PETSc = import_petsc()
-
-    held = {}
-    while True:
-        nap = 5e-5  # s; doubles up to 1 ms while no command comes: a cycle waits ≤ 1 ms, an idle worker ~1 % of a core
-        while not comm.Iprobe(source=0, tag=_CMD):
-            time.sleep(nap)
-            nap = min(2.0 * nap, 1e-3)
-        cmd, *args = comm.recv(source=0, tag=_CMD)
-        if cmd == "setup":
-            key, n_local, n_total, prefix, options = args
-            indptr, indices, data = (recv_array(comm) for _ in range(3))
-            A = hypre_matrix(PETSc.Comm(comm), indptr, indices, data, n_local, n_total)
-            del indptr, indices, data
-            A, pc, x, y = hypre_pc(A, prefix, options)
-            held[key] = (pc, A, x, y)
-        elif cmd == "apply":
-            pc, A, x, y = held[args[0]]
-            comm.Recv(x.getArray(), source=0, tag=_DATA)
-            pc.apply(x, y)
-            comm.Send(y.getArray(), dest=0, tag=_DATA)
-        elif cmd == "free":
-            _destroy(held.pop(args[0]))
-            release_free_heap()
-        elif cmd == "rss":
-            comm.send(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, dest=0, tag=_DATA)
-        elif cmd == "stop":
-            break
-        else:
-            raise ValueError(f"unknown command {cmd!r}")
-    for objs in held.values():
-        _destroy(objs)
-
+            destroy(objs)

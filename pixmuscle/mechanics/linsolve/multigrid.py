@@ -45,8 +45,9 @@ import scipy.sparse as sp
 
 from ...errors import InputError
 from ...parallel import INSTALL_HINT, import_petsc, launched_size
+from ..amg_worker import hypre_matrix, hypre_pc
 from ..threaded import thread_count
-from .amg_processes import SpreadBoomerAMG, group, hypre_matrix, hypre_pc
+from .amg_processes import SpreadBoomerAMG, group
 from .amg_processes import available as amg_processes_available
 
 #: choices of the ``amg`` option of the iterative backends

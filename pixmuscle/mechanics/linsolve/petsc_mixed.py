@@ -94,12 +94,13 @@ from dataclasses import field
 import numpy as np
 
 from ...errors import SolverError, SolverGaveUp
+from ...parallel import set_options
 from ..heap import release_free_heap
 from . import multigrid
 from .base import BACKENDS, SolverMemory, built_from, memory_state
 from .mixed_method import MixedBlocks, Pass, box_signs, probe_colours, probe_diagonal, refine
 from .petsc import DEFAULT_OPTIONS as CONDENSED_OPTIONS
-from .petsc import PETScOptions, PETScSolver, set_options
+from .petsc import PETScOptions, PETScSolver
 from .rebuild import RebuildPolicy
 from .subdomains import COUPLINGS
 
@@ -224,14 +225,14 @@ def _owned_block_rows(make_K, layout, PETSc):
     data = K.data[idx[by]]
     cols = cols[by]
     del K, idx, by
-    from .amg_processes import hypre_matrix
+    from ..amg_worker import hypre_matrix
 
     return hypre_matrix(layout.comm, indptr, cols, data, own.size, layout.n_global)
 
 
 def _multigrid(A, s, system, PETSc):
     """The multigrid PC on the stand-in rows ``A``: BoomerAMG where PETSc has hypre, else GAMG."""
-    from .amg_processes import hypre_pc
+    from ..amg_worker import hypre_pc
 
     amg_opts = {k[4:]: v for k, v in (s.user_options or {}).items() if str(k).startswith("amg_")}
     if multigrid.hypre_available():
