@@ -333,6 +333,33 @@ def test_unstored_operators_equal_the_stored_ones_whatever_the_threads():
     assert abs(sp.vstack(list(G)) - G.stacked).max() == 0.0 and abs(G[1] - A[700:]).max() == 0.0
 
 
+def test_transposed_and_symmetric_products_of_a_banded_matrix_sum_over_windows():
+    """In the slice-by-slice node order a block of rows reaches a band around its own: the transposed
+    and symmetric products sum each block over that window only (empty rows and blocks included), and
+    equal SciPy's products of the stored matrices for one, two and three columns."""
+    import scipy.sparse as sp
+
+    from pixmuscle.mechanics.tangent import TRANSPOSE_PARTS, SymmetricCSR, TransposedCSR
+
+    rng = np.random.default_rng(7)
+    n, band = 3000, 40
+    rows = np.repeat(np.arange(n), 30)
+    cols = np.clip(rows + rng.integers(-band, band + 1, rows.size), 0, n - 1)
+    keep = (rows >= 400) & (rows < 2600)  # empty rows at both ends: whole blocks without entries
+    A = sp.csr_matrix((rng.standard_normal(keep.sum()), (rows[keep], cols[keep])), shape=(n, n))
+    L = (A + A.T + sp.identity(n)).tocsr()
+    T, S = TransposedCSR(A), SymmetricCSR(L)
+    # each block's own rows and a band beyond them, not n rows per block
+    assert np.sum(S._hi - S._lo) <= n + TRANSPOSE_PARTS * (band + 1)
+    assert np.sum(T._hi - T._lo) <= n + TRANSPOSE_PARTS * (2 * band + 1)
+    for k in (1, 2, 3):
+        X = rng.standard_normal((n, k))
+        ref = L @ X
+        assert np.abs(S @ X - ref).max() <= 1e-13 * np.abs(ref).max()
+    X = rng.standard_normal((n, 3))
+    assert np.abs(T @ X - A.T @ X).max() <= 1e-13 * np.abs(A.T @ X).max()
+
+
 def test_threaded_fill_adds_the_same_blocks_as_one_thread():
     """The fills split the block rows among threads (each adds to its own rows only): the tangent
     comes out bit for bit as on one thread, for the whole pattern and for the square block of a

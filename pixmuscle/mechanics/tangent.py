@@ -52,29 +52,72 @@ _UNWEIGHTED = np.empty(0)
 TRANSPOSE_PARTS = 8
 
 
+def part_windows(A: sp.csr_matrix, cuts: np.ndarray, own_rows: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The columns [lo_p, hi_p) that the entries of each row block A[cuts[p]:cuts[p + 1]] reach
+    (with ``own_rows`` the block's own rows too: an upper triangle's block adds into both).
+
+    A transposed or symmetric product sums each block into a buffer over its window only, not
+    over all n rows: in the slice-by-slice node order a block of rows reaches a band of nodes
+    around its own, so the buffers hold about 2n rows in all instead of ``TRANSPOSE_PARTS`` · n,
+    and are cleared and added up in proportion (:func:`add_windows`).
+
+    Returns
+    -------
+    lo, hi : (P,) int64
+    """
+    P = cuts.size - 1
+    lo, hi = np.zeros(P, np.int64), np.zeros(P, np.int64)
+    for p in range(P):
+        cols = A.indices[A.indptr[cuts[p]]:A.indptr[cuts[p + 1]]]
+        if own_rows:
+            lo[p] = cuts[p]
+            hi[p] = max(int(cuts[p + 1]), int(cols.max()) + 1 if cols.size else 0)
+        elif cols.size:
+            lo[p], hi[p] = int(cols.min()), int(cols.max()) + 1
+    return lo, hi
+
+
+def window_offsets(lo: np.ndarray, hi: np.ndarray, k: int) -> np.ndarray:
+    """Offsets (P + 1,) of the blocks' (hi − lo) × k buffers in one flat array."""
+    return np.concatenate([[0], np.cumsum(k * (hi - lo))]).astype(np.int64)
+
+
+def add_windows(buf: np.ndarray, lo: np.ndarray, hi: np.ndarray, offs: np.ndarray, n: int, k: int) -> np.ndarray:
+    """(n, k): the blocks' buffers added into their windows, block 0 first (a fixed order, so the
+    sum does not depend on the number of threads)."""
+    out = np.zeros((n, k))
+    for p in range(lo.size):
+        out[lo[p]:hi[p]] += buf[offs[p]:offs[p + 1]].reshape(-1, k)
+    return out
+
+
 @numba.njit(cache=True, parallel=True)
-def _tmatmat3(indptr, indices, data, X, cuts, out):  # pragma: no cover - compiled
-    """out[p] = A[cuts[p]:cuts[p + 1]]ᵀ X[cuts[p]:cuts[p + 1]] for CSR A, X (m, 3), out (P, n, 3) zeros."""
+def _tmatmat3(indptr, indices, data, X, cuts, lo, offs, buf):  # pragma: no cover - compiled
+    """buf_p = A[cuts[p]:cuts[p + 1]]ᵀ X[cuts[p]:cuts[p + 1]] on the window from column lo[p], for
+    CSR A, X (m, 3); buf_p = buf[offs[p]:offs[p + 1]] (cleared here), row-major (·, 3)."""
     for p in numba.prange(cuts.size - 1):
-        o = out[p]
+        base, first = offs[p], lo[p]
+        for i in range(base, offs[p + 1]):
+            buf[i] = 0.0
         for r in range(cuts[p], cuts[p + 1]):
             x0 = X[r, 0]
             x1 = X[r, 1]
             x2 = X[r, 2]
             for jj in range(indptr[r], indptr[r + 1]):
                 a = data[jj]
-                j = indices[jj]
-                o[j, 0] += a * x0
-                o[j, 1] += a * x1
-                o[j, 2] += a * x2
+                q = base + 3 * (indices[jj] - first)
+                buf[q] += a * x0
+                buf[q + 1] += a * x1
+                buf[q + 2] += a * x2
 
 
 class TransposedCSR:
     """Aᵀ of a CSR matrix A (m × n) as an operator, without a transposed copy.
 
     ``Aᵀ @ X`` for X (m, 3) scatters the rows of A, :data:`TRANSPOSE_PARTS` row blocks of about
-    equal non-zeros in parallel, each into its own (n, 3) sum, added in a fixed order; other
-    right-hand sides use SciPy's product with the CSC view ``A.T``.
+    equal non-zeros in parallel, each into its own sum over the columns it reaches
+    (:func:`part_windows`), added in a fixed order; other right-hand sides use SciPy's product
+    with the CSC view ``A.T``.
 
     Parameters
     ----------
@@ -91,6 +134,8 @@ class TransposedCSR:
         self.shape = (A.shape[1], A.shape[0])
         cuts = np.searchsorted(A.indptr, np.linspace(0, A.nnz, TRANSPOSE_PARTS + 1)[1:-1])
         self._cuts = np.concatenate([[0], cuts, [A.shape[0]]]).astype(np.int64)
+        self._lo, self._hi = part_windows(A, self._cuts)
+        self._offs = window_offsets(self._lo, self._hi, 3)
 
     @property
     def matrix(self) -> sp.csc_matrix:
@@ -104,12 +149,10 @@ class TransposedCSR:
         A = self._A
         if sp.issparse(X) or np.ndim(X) != 2 or np.shape(X)[1] != 3 or A.dtype != np.float64:
             return A.T @ X
-        parts = np.zeros((TRANSPOSE_PARTS, self.shape[0], 3))
-        _tmatmat3(A.indptr, A.indices, A.data, np.ascontiguousarray(X, dtype=np.float64), self._cuts, parts)
-        out = parts[0]
-        for p in range(1, TRANSPOSE_PARTS):
-            out += parts[p]
-        return out
+        buf = np.empty(self._offs[-1])
+        _tmatmat3(A.indptr, A.indices, A.data, np.ascontiguousarray(X, dtype=np.float64), self._cuts, self._lo,
+                  self._offs, buf)
+        return add_windows(buf, self._lo, self._hi, self._offs, self.shape[0], 3)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -161,21 +204,57 @@ class RowSubset:
 
 
 @numba.njit(cache=True, parallel=True)
-def _symmatmat(indptr, indices, data, X, cuts, out):  # pragma: no cover - compiled
-    """out[p] = U_p X + (U_p − diag U_p)ᵀ X for the rows U_p = U[cuts[p]:cuts[p + 1]] of an upper
-    triangle U (CSR), X (n, k), out (P, n, k) zeros."""
+def _symmatmat(indptr, indices, data, X, cuts, offs, buf):  # pragma: no cover - compiled
+    """buf_p = U_p X + (U_p − diag U_p)ᵀ X for the rows U_p = U[cuts[p]:cuts[p + 1]] of an upper
+    triangle U (CSR), X (n, k), on the window from row cuts[p]; buf_p = buf[offs[p]:offs[p + 1]]
+    (cleared here), row-major (·, k)."""
     k = X.shape[1]
     for p in numba.prange(cuts.size - 1):
-        o = out[p]
+        base, first = offs[p], cuts[p]
+        for i in range(base, offs[p + 1]):
+            buf[i] = 0.0
         for r in range(cuts[p], cuts[p + 1]):
+            qr = base + k * (r - first)
             for jj in range(indptr[r], indptr[r + 1]):
                 a = data[jj]
                 j = indices[jj]
                 for c in range(k):
-                    o[r, c] += a * X[j, c]
+                    buf[qr + c] += a * X[j, c]
                 if j != r:
+                    q = base + k * (j - first)
                     for c in range(k):
-                        o[j, c] += a * X[r, c]
+                        buf[q + c] += a * X[r, c]
+
+
+@numba.njit(cache=True, parallel=True)
+def _symmatmat3(indptr, indices, data, X, cuts, offs, buf):  # pragma: no cover - compiled
+    """:func:`_symmatmat` for X (n, 3), each row's own product summed in registers and added once."""
+    for p in numba.prange(cuts.size - 1):
+        base, first = offs[p], cuts[p]
+        for i in range(base, offs[p + 1]):
+            buf[i] = 0.0
+        for r in range(cuts[p], cuts[p + 1]):
+            s0 = 0.0
+            s1 = 0.0
+            s2 = 0.0
+            x0 = X[r, 0]
+            x1 = X[r, 1]
+            x2 = X[r, 2]
+            for jj in range(indptr[r], indptr[r + 1]):
+                a = data[jj]
+                j = indices[jj]
+                s0 += a * X[j, 0]
+                s1 += a * X[j, 1]
+                s2 += a * X[j, 2]
+                if j != r:
+                    q = base + 3 * (j - first)
+                    buf[q] += a * x0
+                    buf[q + 1] += a * x1
+                    buf[q + 2] += a * x2
+            q = base + 3 * (r - first)
+            buf[q] += s0
+            buf[q + 1] += s1
+            buf[q + 2] += s2
 
 
 #: row blocks of :func:`gram_upper`: each holds one block of L's rows while it is summed
@@ -235,8 +314,9 @@ class SymmetricCSR:
     the entries.
 
     ``L @ X`` is one pass over U, :data:`TRANSPOSE_PARTS` row blocks of about equal non-zeros in
-    parallel, each adding U_p X and its transpose's share into its own sum, added in a fixed order (so
-    the product does not depend on the number of threads).
+    parallel, each adding U_p X and its transpose's share into its own sum over the rows it reaches
+    (:func:`part_windows`), added in a fixed order (so the product does not depend on the number of
+    threads). With three columns each row's own product is summed in registers and added once.
 
     Parameters
     ----------
@@ -261,6 +341,7 @@ class SymmetricCSR:
         self.shape = U.shape
         cuts = np.searchsorted(U.indptr, np.linspace(0, U.nnz, TRANSPOSE_PARTS + 1)[1:-1])
         self._cuts = np.concatenate([[0], cuts, [U.shape[0]]]).astype(np.int64)
+        self._lo, self._hi = part_windows(U, self._cuts, own_rows=True)
 
     @property
     def nnz(self) -> int:
@@ -313,13 +394,12 @@ class SymmetricCSR:
             return self.matrix @ X
         X = np.asarray(X, dtype=np.float64)
         X2 = np.ascontiguousarray(X.reshape(X.shape[0], -1))
-        parts = np.zeros((TRANSPOSE_PARTS,) + X2.shape)
+        k = X2.shape[1]
         U = self.upper
-        _symmatmat(U.indptr, U.indices, U.data, X2, self._cuts, parts)
-        out = parts[0]
-        for p in range(1, TRANSPOSE_PARTS):
-            out += parts[p]
-        return out.reshape(X.shape)
+        offs = window_offsets(self._lo, self._hi, k)
+        buf = np.empty(offs[-1])
+        (_symmatmat3 if k == 3 else _symmatmat)(U.indptr, U.indices, U.data, X2, self._cuts, offs, buf)
+        return add_windows(buf, self._lo, self._hi, offs, U.shape[0], k).reshape(X.shape)
 
 
 class ProductForm:
