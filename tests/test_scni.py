@@ -360,6 +360,30 @@ def test_transposed_and_symmetric_products_of_a_banded_matrix_sum_over_windows()
     assert np.abs(T @ X - A.T @ X).max() <= 1e-13 * np.abs(A.T @ X).max()
 
 
+def test_gram_upper_is_the_upper_triangle_of_the_weighted_gram_sum_whatever_the_threads():
+    """gram_upper(terms) = triu(Σ_t B_tᵀ diag(w_t) B_t) with signed weights, its row blocks made on one
+    thread or on several, bit for bit the same."""
+    import scipy.sparse as sp
+
+    from pixmuscle.mechanics.tangent import gram_upper
+
+    rng = np.random.default_rng(11)
+    n, m = 500, 700
+    terms = [(sp.random(m, n, density=0.02, format="csr", random_state=k), rng.standard_normal(m)) for k in range(3)]
+    ref = sp.triu(sum(B.T @ sp.diags(w) @ B for B, w in terms), format="csr")
+    out = [gram_upper(iter(terms), n, blocks=7) for _ in range(2)]
+    assert abs(out[0] - ref).max() <= 1e-13 * abs(ref).max()
+    import numba
+
+    saved = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)  # the thread count of pixmuscle's pools (threaded.thread_count)
+        one = gram_upper(iter(terms), n, blocks=7)
+    finally:
+        numba.set_num_threads(saved)
+    assert all((U != one).nnz == 0 for U in out)
+
+
 def test_threaded_fill_adds_the_same_blocks_as_one_thread():
     """The fills split the block rows among threads (each adds to its own rows only): the tangent
     comes out bit for bit as on one thread, for the whole pattern and for the square block of a

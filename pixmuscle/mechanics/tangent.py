@@ -15,13 +15,15 @@ costs about as much as a product with the assembled K and holds ~5 % of its memo
 
 from __future__ import annotations
 
+import functools
+
 import numba
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .scni import StackedRows
-from .threaded import ThreadedCSR
+from .threaded import ThreadedCSR, map_threads
 
 
 @numba.njit(cache=True, parallel=True)
@@ -269,8 +271,9 @@ def gram_upper(terms, n: int, blocks: int = GRAM_BLOCKS) -> sp.csr_matrix:
     (B_tᵀ)_R diag(w_t) B_t is made and its entries left of the diagonal dropped, and the block's
     sum is added to. ``terms`` is iterated once, so a generator can make each operator when it is
     asked for and let it go after: the memory beyond the result is then one operator, its
-    transpose and one block's product (on the 295k leg the product of all nine NSNI operators
-    stacked held 5.4 GB beside them at its peak).
+    transpose and one block's product per thread (on the 295k leg the product of all nine NSNI
+    operators stacked held 5.4 GB beside them at its peak). The blocks of an operator are made on
+    :func:`.threaded.map_threads`' threads, each into its own part of the result.
 
     Parameters
     ----------
@@ -288,19 +291,22 @@ def gram_upper(terms, n: int, blocks: int = GRAM_BLOCKS) -> sp.csr_matrix:
     """
     edges = np.linspace(0, n, max(1, min(int(blocks), n)) + 1).astype(np.int64)
     parts = [None] * (edges.size - 1)
+
+    def block(b, B, BT, w):
+        lo, hi = edges[b], edges[b + 1]
+        Bc = BT[lo:hi]  # ((hi − lo) × m): the rows R of Bᵀ
+        Bc.data *= w[Bc.indices]
+        # row r of the block is L's row lo + r: keep its columns j >= lo + r
+        prod = sp.triu(Bc @ B, k=int(lo), format="csr")
+        del Bc
+        parts[b] = prod if parts[b] is None else (parts[b] + prod).tocsr()
+
     for B, w in terms:
         B = sp.csr_matrix(B)
         w = np.asarray(w, np.float64)
         # Bᵀ by rows (B's columns: one copy of this operator), each block of its rows weighted as it is cut
         BT = B.T.tocsr()
-        for b, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
-            Bc = BT[lo:hi]  # ((hi − lo) × m): the rows R of Bᵀ
-            Bc.data *= w[Bc.indices]
-            # row r of the block is L's row lo + r: keep its columns j >= lo + r
-            prod = sp.triu(Bc @ B, k=int(lo), format="csr")
-            del Bc
-            parts[b] = prod if parts[b] is None else (parts[b] + prod).tocsr()
-            del prod
+        map_threads(functools.partial(block, B=B, BT=BT, w=w), range(edges.size - 1))
         del B, BT
     parts = [sp.csr_matrix((int(hi - lo), n)) if p is None else p
              for p, lo, hi in zip(parts, edges[:-1], edges[1:], strict=True)]
