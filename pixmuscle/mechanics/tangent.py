@@ -159,17 +159,37 @@ class TransposedCSR:
 
 @numba.njit(cache=True, parallel=True)
 def _rows_matmat(indptr, indices, data, rows, X, out):  # pragma: no cover - compiled
-    """out[i] = A[rows[i]] X for CSR A and X (n, k): each row summed in index order, as a CSR product."""
+    """out[i] = A[rows[i]] X for CSR A and X (n, k): each row summed in index order, as a CSR product
+    (in registers for one and three columns, in ``out`` for others: the same sums)."""
     k = X.shape[1]
     for i in numba.prange(rows.size):
         r = rows[i]
-        for c in range(k):
-            out[i, c] = 0.0
-        for jj in range(indptr[r], indptr[r + 1]):
-            a = data[jj]
-            j = indices[jj]
+        if k == 3:
+            s0 = 0.0
+            s1 = 0.0
+            s2 = 0.0
+            for jj in range(indptr[r], indptr[r + 1]):
+                a = data[jj]
+                j = indices[jj]
+                s0 += a * X[j, 0]
+                s1 += a * X[j, 1]
+                s2 += a * X[j, 2]
+            out[i, 0] = s0
+            out[i, 1] = s1
+            out[i, 2] = s2
+        elif k == 1:
+            s = 0.0
+            for jj in range(indptr[r], indptr[r + 1]):
+                s += data[jj] * X[indices[jj], 0]
+            out[i, 0] = s
+        else:
             for c in range(k):
-                out[i, c] += a * X[j, c]
+                out[i, c] = 0.0
+            for jj in range(indptr[r], indptr[r + 1]):
+                a = data[jj]
+                j = indices[jj]
+                for c in range(k):
+                    out[i, c] += a * X[j, c]
 
 
 class RowSubset:
