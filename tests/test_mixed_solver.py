@@ -248,6 +248,12 @@ def test_a_finished_solve_lets_the_moduli_go_and_the_next_system_keeps_the_preco
     system.release_moduli(s0)
     assert solver._A is None and solver._mixed is None and s0.A is None
     assert solver._M is hierarchy and solver.info["preconditioner_builds"] == 1
+    next_system_keeps_the_preconditioner(solver, model, system)
+
+
+def next_system_keeps_the_preconditioner(solver, model, system):
+    """The next Newton system (a deformed state) prepared and solved after a finished one: no new
+    preconditioner build, and the update equals SciPy's direct solve of its assembled tangent."""
     s1 = system.evaluate(np.full((model.n_nodes, 3), 1e-3), 0.5, 0.6)
     solver.prepare(system, s1)
     r = s1.r.ravel()

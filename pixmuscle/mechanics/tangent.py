@@ -23,7 +23,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .scni import StackedRows
-from .threaded import ThreadedCSR, map_threads
+from .threaded import ThreadedCSR, map_threads, row_dot3
 
 
 @numba.njit(cache=True, parallel=True)
@@ -59,9 +59,12 @@ def part_windows(A: sp.csr_matrix, cuts: np.ndarray, own_rows: bool = False) -> 
     (with ``own_rows`` the block's own rows too: an upper triangle's block adds into both).
 
     A transposed or symmetric product sums each block into a buffer over its window only, not
-    over all n rows: in the slice-by-slice node order a block of rows reaches a band of nodes
-    around its own, so the buffers hold about 2n rows in all instead of ``TRANSPOSE_PARTS`` · n,
-    and are cleared and added up in proportion (:func:`add_windows`).
+    over all n rows: in the slice-by-slice node order a block of a node-by-node matrix (the NSNI
+    stabilisation, one gradient operator) reaches a band of nodes around its own rows, so its
+    buffers hold about n rows plus a band per block instead of ``TRANSPOSE_PARTS`` · n, and are
+    cleared and added up in proportion (:func:`add_windows`). A block of stacked operators that
+    crosses from one operator to the next reaches most of the columns: at worst n rows, as before.
+    The windows are fixed when the product is made: the matrix's pattern must not change after.
 
     Returns
     -------
@@ -71,8 +74,8 @@ def part_windows(A: sp.csr_matrix, cuts: np.ndarray, own_rows: bool = False) -> 
     lo, hi = np.zeros(P, np.int64), np.zeros(P, np.int64)
     for p in range(P):
         cols = A.indices[A.indptr[cuts[p]]:A.indptr[cuts[p + 1]]]
-        if own_rows:
-            lo[p] = cuts[p]
+        if own_rows:  # an entry left of the diagonal (not an upper triangle) still lands inside
+            lo[p] = min(int(cuts[p]), int(cols.min())) if cols.size else cuts[p]
             hi[p] = max(int(cuts[p + 1]), int(cols.max()) + 1 if cols.size else 0)
         elif cols.size:
             lo[p], hi[p] = int(cols.min()), int(cols.max()) + 1
@@ -165,18 +168,7 @@ def _rows_matmat(indptr, indices, data, rows, X, out):  # pragma: no cover - com
     for i in numba.prange(rows.size):
         r = rows[i]
         if k == 3:
-            s0 = 0.0
-            s1 = 0.0
-            s2 = 0.0
-            for jj in range(indptr[r], indptr[r + 1]):
-                a = data[jj]
-                j = indices[jj]
-                s0 += a * X[j, 0]
-                s1 += a * X[j, 1]
-                s2 += a * X[j, 2]
-            out[i, 0] = s0
-            out[i, 1] = s1
-            out[i, 2] = s2
+            out[i, 0], out[i, 1], out[i, 2] = row_dot3(indptr, indices, data, X, r)
         elif k == 1:
             s = 0.0
             for jj in range(indptr[r], indptr[r + 1]):
@@ -226,13 +218,13 @@ class RowSubset:
 
 
 @numba.njit(cache=True, parallel=True)
-def _symmatmat(indptr, indices, data, X, cuts, offs, buf):  # pragma: no cover - compiled
+def _symmatmat(indptr, indices, data, X, cuts, lo, offs, buf):  # pragma: no cover - compiled
     """buf_p = U_p X + (U_p − diag U_p)ᵀ X for the rows U_p = U[cuts[p]:cuts[p + 1]] of an upper
-    triangle U (CSR), X (n, k), on the window from row cuts[p]; buf_p = buf[offs[p]:offs[p + 1]]
+    triangle U (CSR), X (n, k), on the window from row lo[p]; buf_p = buf[offs[p]:offs[p + 1]]
     (cleared here), row-major (·, k)."""
     k = X.shape[1]
     for p in numba.prange(cuts.size - 1):
-        base, first = offs[p], cuts[p]
+        base, first = offs[p], lo[p]
         for i in range(base, offs[p + 1]):
             buf[i] = 0.0
         for r in range(cuts[p], cuts[p + 1]):
@@ -249,10 +241,10 @@ def _symmatmat(indptr, indices, data, X, cuts, offs, buf):  # pragma: no cover -
 
 
 @numba.njit(cache=True, parallel=True)
-def _symmatmat3(indptr, indices, data, X, cuts, offs, buf):  # pragma: no cover - compiled
+def _symmatmat3(indptr, indices, data, X, cuts, lo, offs, buf):  # pragma: no cover - compiled
     """:func:`_symmatmat` for X (n, 3), each row's own product summed in registers and added once."""
     for p in numba.prange(cuts.size - 1):
-        base, first = offs[p], cuts[p]
+        base, first = offs[p], lo[p]
         for i in range(base, offs[p + 1]):
             buf[i] = 0.0
         for r in range(cuts[p], cuts[p + 1]):
@@ -424,7 +416,7 @@ class SymmetricCSR:
         U = self.upper
         offs = window_offsets(self._lo, self._hi, k)
         buf = np.empty(offs[-1])
-        (_symmatmat3 if k == 3 else _symmatmat)(U.indptr, U.indices, U.data, X2, self._cuts, offs, buf)
+        (_symmatmat3 if k == 3 else _symmatmat)(U.indptr, U.indices, U.data, X2, self._cuts, self._lo, offs, buf)
         return add_windows(buf, self._lo, self._hi, offs, U.shape[0], k).reshape(X.shape)
 
 

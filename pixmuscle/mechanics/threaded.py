@@ -52,22 +52,26 @@ def _forget_pools() -> None:  # a forked child has none of its parent's threads
 os.register_at_fork(after_in_child=_forget_pools)
 
 
+@numba.njit(cache=True, inline="always")
+def row_dot3(indptr, indices, data, X, r):  # pragma: no cover - compiled
+    """(A X)[r] for CSR A and X (·, 3): three running sums over the row's entries in index order."""
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    for jj in range(indptr[r], indptr[r + 1]):
+        a = data[jj]
+        j = indices[jj]
+        s0 += a * X[j, 0]
+        s1 += a * X[j, 1]
+        s2 += a * X[j, 2]
+    return s0, s1, s2
+
+
 @numba.njit(parallel=True, cache=True)
 def _matmat3(indptr, indices, data, X, out):  # pragma: no cover - compiled
     """out = A X for CSR A and X (n, 3)."""
     for i in numba.prange(indptr.size - 1):
-        s0 = 0.0
-        s1 = 0.0
-        s2 = 0.0
-        for jj in range(indptr[i], indptr[i + 1]):
-            a = data[jj]
-            j = indices[jj]
-            s0 += a * X[j, 0]
-            s1 += a * X[j, 1]
-            s2 += a * X[j, 2]
-        out[i, 0] = s0
-        out[i, 1] = s1
-        out[i, 2] = s2
+        out[i, 0], out[i, 1], out[i, 2] = row_dot3(indptr, indices, data, X, i)
 
 
 class ThreadedCSR:

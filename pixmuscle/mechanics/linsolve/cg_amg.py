@@ -248,10 +248,13 @@ class KrylovAMGSolver(LinearSolver):
 
     def recall(self, system, memory: SolverMemory) -> None:
         """Build the hierarchy from the tangent at ``memory``'s state and restore the counters (a
-        hierarchy the rule had marked stale is not rebuilt here: the next Newton system rebuilds it)."""
+        hierarchy the rule had marked stale is not rebuilt here: the next Newton system rebuilds it).
+        The operator of that state is let go at once (:meth:`finish`): the resumed load step
+        evaluates its start state without it."""
         self._M = None
         if not memory.counters["stale"]:
             self.prepare(system, memory_state(system, memory))
+            self.finish()
         self.policy.restore(memory.counters)
 
     def statistics(self) -> dict:

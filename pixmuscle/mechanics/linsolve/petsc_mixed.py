@@ -345,9 +345,11 @@ class PETScMixedSolver(PETScSolver):
 
     def recall(self, system, memory: SolverMemory) -> None:
         """Build the displacement preconditioner at ``memory``'s state and restore the counters (one
-        the rule had marked stale is left for the next Newton system to rebuild)."""
+        the rule had marked stale is left for the next Newton system to rebuild); that state's PETSc
+        objects are let go at once (:meth:`finish`)."""
         if self._M is not None and not memory.counters["stale"]:
             self.prepare(system, memory_state(system, memory))
+            self.finish()
         self.policy.restore(memory.counters)
 
     def _pressures(self, system):
